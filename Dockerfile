@@ -1,0 +1,29 @@
+# voxfusion on a CUDA GPU server.
+#   docker build -t voxfusion .
+#   docker run --gpus all -p 8000:8000 -v $PWD/voxfusion-data:/data voxfusion
+FROM nvidia/cuda:12.4.1-cudnn-runtime-ubuntu22.04
+
+ENV DEBIAN_FRONTEND=noninteractive PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends python3.11 python3.11-venv python3-pip \
+        libusb-1.0-0 libgl1 libegl1 libglx0 libgomp1 libx11-6 \
+ && rm -rf /var/lib/apt/lists/*
+
+WORKDIR /opt/voxfusion
+RUN python3.11 -m venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH
+# The regular PyPI torch wheel ships its CUDA libraries.
+RUN pip install --upgrade pip setuptools wheel && pip install torch
+
+COPY pyproject.toml README.md ./
+COPY voxfusion ./voxfusion
+COPY core ./core
+COPY server ./server
+COPY proto ./proto
+COPY clients ./clients
+COPY configs ./configs
+RUN pip install ".[baseline,server]"
+
+VOLUME ["/data"]
+EXPOSE 8000
+CMD ["voxfusion", "--help"]

@@ -1,0 +1,53 @@
+"""Evaluation: trajectory error (ATE / RPE), mesh accuracy / completion / F-score, depth L1, and the
+table / JSON helpers the CLI and the benchmarks share."""
+
+from .depth import DepthL1Result, depth_l1
+from .mesh import (
+    CameraView,
+    MeshEvalConfig,
+    MeshMethod,
+    MeshMetrics,
+    compute_mesh_metrics,
+    cull_to_views,
+    load_mesh,
+    point_to_surface_distance,
+    sample_surface,
+    views_from_frames,
+)
+from .report import format_table, to_jsonable, write_json
+from .trajectory import (
+    AlignMode,
+    ATEResult,
+    RPEResult,
+    TrajectoryEvalConfig,
+    align_umeyama,
+    associate,
+    compute_ate,
+    compute_rpe,
+)
+
+__all__ = [
+    "AlignMode",
+    "ATEResult",
+    "RPEResult",
+    "TrajectoryEvalConfig",
+    "associate",
+    "align_umeyama",
+    "compute_ate",
+    "compute_rpe",
+    "MeshMethod",
+    "MeshEvalConfig",
+    "MeshMetrics",
+    "CameraView",
+    "views_from_frames",
+    "load_mesh",
+    "sample_surface",
+    "point_to_surface_distance",
+    "cull_to_views",
+    "compute_mesh_metrics",
+    "DepthL1Result",
+    "depth_l1",
+    "format_table",
+    "to_jsonable",
+    "write_json",
+]

@@ -1,0 +1,55 @@
+from dataclasses import dataclass, field
+from typing import Literal
+
+import pytest
+
+from voxfusion.core.config import apply_overrides, config_to_dict, load_config, parse_overrides
+from voxfusion.core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Inner:
+    lr: float = 0.01
+    iters: int = 10
+    mode: Literal["a", "b"] = "a"
+
+
+@dataclass(frozen=True)
+class Outer:
+    inner: Inner = field(default_factory=Inner)
+    name: str = "x"
+    size: tuple[int, int] = (4, 3)
+    device: str | None = None
+
+
+def test_yaml_base_and_overrides(tmp_path):
+    (tmp_path / "base.yaml").write_text("inner:\n  lr: 0.5\nname: base\n")
+    (tmp_path / "child.yaml").write_text("base: base.yaml\ninner:\n  iters: 3\n")
+    cfg = load_config(Outer, tmp_path / "child.yaml", ["inner.mode=b", "size=[8, 6]", "device=cpu"])
+    assert cfg == Outer(Inner(lr=0.5, iters=3, mode="b"), name="base", size=(8, 6), device="cpu")
+    assert config_to_dict(cfg)["size"] == [8, 6]
+
+
+def test_int_promotes_to_float_but_not_reverse():
+    assert apply_overrides(Outer(), ["inner.lr=1"]).inner.lr == 1.0
+    with pytest.raises(ConfigError, match="inner.iters"):
+        apply_overrides(Outer(), ["inner.iters=1.5"])
+
+
+@pytest.mark.parametrize(
+    "items, key",
+    [(["inner.nope=1"], "inner.nope"), (["inner.mode=c"], "inner.mode"), (["novalue"], "novalue")],
+)
+def test_bad_overrides_name_the_key(items, key):
+    with pytest.raises(ConfigError) as e:
+        apply_overrides(Outer(), items)
+    assert e.value.field == key
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(Outer, tmp_path / "missing.yaml")
+
+
+def test_parse_overrides_nested():
+    assert parse_overrides(["a.b=1", "a.c=true", "d=hi"]) == {"a": {"b": 1, "c": True}, "d": "hi"}
