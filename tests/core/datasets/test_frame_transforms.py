@@ -1,0 +1,99 @@
+"""Frame transforms (resize, confidence filter, depth clip) and the capture wrappers."""
+
+from __future__ import annotations
+
+from functools import partial
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from voxfusion.core.datasets import (
+    BaseCapture,
+    RGBDFrame,
+    SlicedCapture,
+    TransformedCapture,
+    clip_depth,
+    filter_depth_by_confidence,
+    resize_frame,
+)
+from voxfusion.core.errors import ValidationError
+from voxfusion.core.geometry import make_intrinsics
+
+
+def _frame(index: int = 0, w: int = 64, h: int = 48) -> RGBDFrame:
+    rng = np.random.default_rng(index)
+    depth = rng.uniform(0.2, 5.0, (h, w)).astype(np.float32)
+    depth[::7, ::5] = 0.0
+    return RGBDFrame(
+        depth_m=depth, K=make_intrinsics(50.0, 51.0, w / 2 - 0.5, h / 2 - 0.5), timestamp_s=float(index),
+        color=rng.integers(0, 255, (h, w, 3), dtype=np.uint8),
+        confidence=rng.integers(0, 3, (h, w), dtype=np.uint8), T_world_cam=np.eye(4), index=index,
+    )
+
+
+class _ListCapture(BaseCapture):
+    def __init__(self, n: int) -> None:
+        self.name, self.path, self.n, self.loaded = "list", Path("."), n, []
+
+    def __len__(self) -> int:
+        return self.n
+
+    def _load(self, i: int) -> RGBDFrame:
+        self.loaded.append(i)
+        return _frame(i)
+
+
+def test_resize_frame_nearest_depth_area_colour_scaled_K():
+    f = _frame()
+    g = resize_frame(f, 32, 24)
+    assert g.depth_m.shape == (24, 32) and g.color.shape == (24, 32, 3) and g.confidence.shape == (24, 32)
+    assert set(np.unique(g.depth_m)) <= set(np.unique(f.depth_m))  # nearest: no invented depths
+    assert set(np.unique(g.confidence)) <= {0, 1, 2}
+    np.testing.assert_array_equal(g.color, cv2.resize(f.color, (32, 24), interpolation=cv2.INTER_AREA))
+    np.testing.assert_allclose(g.K[0], f.K[0] / 2)
+    np.testing.assert_allclose(g.K[1], f.K[1] / 2)
+    assert resize_frame(f, 64, 48) is f
+    depth_only = resize_frame(f.with_(color=None, confidence=None), 16, 12)
+    assert depth_only.color is None and depth_only.confidence is None and depth_only.K[0, 0] == 12.5
+    with pytest.raises(ValidationError):
+        resize_frame(f, 0, 10)
+
+
+def test_confidence_filter_and_clip():
+    f = _frame()
+    g = filter_depth_by_confidence(f, 2)
+    assert np.all(g.depth_m[f.confidence < 2] == 0)
+    np.testing.assert_array_equal(g.depth_m[f.confidence == 2], f.depth_m[f.confidence == 2])
+    assert filter_depth_by_confidence(f, 0) is f
+    no_conf = f.with_(confidence=None)
+    assert filter_depth_by_confidence(no_conf, 2) is no_conf
+    with pytest.raises(ValidationError, match="min_confidence"):
+        filter_depth_by_confidence(f, 3)
+    c = clip_depth(f, 1.0, 3.0)
+    kept = c.depth_m > 0
+    assert c.depth_m.dtype == np.float32
+    assert np.all((c.depth_m[kept] >= 1.0) & (c.depth_m[kept] <= 3.0))
+    assert kept.sum() == ((f.depth_m >= 1.0) & (f.depth_m <= 3.0)).sum()
+    with pytest.raises(ValidationError):
+        clip_depth(f, 3.0, 1.0)
+
+
+def test_transformed_and_sliced_captures_are_lazy():
+    base = _ListCapture(10)
+    view = SlicedCapture(TransformedCapture(base, partial(resize_frame, width=32, height=24),
+                                            partial(clip_depth, max_m=2.0)), start=1, step=3)
+    assert len(view) == 3 and base.loaded == []
+    frames = list(view)
+    assert base.loaded == [1, 4, 7]
+    assert [f.index for f in frames] == [0, 1, 2]
+    assert [f.meta["source_index"] for f in frames] == [1, 4, 7]
+    assert all(f.width == 32 and f.depth_m.max() <= 2.0 for f in frames)
+    assert view[-1].meta["source_index"] == 7
+    with pytest.raises(IndexError):
+        view[3]
+    with pytest.raises(ValidationError):
+        TransformedCapture(base, "not callable")
+    with pytest.raises(ValidationError):
+        SlicedCapture(base, step=0)
