@@ -20,6 +20,7 @@ app = typer.Typer(
 _COMMAND_MODULES = (
     "voxfusion.commands.synth",
     "voxfusion.commands.eval",
+    "voxfusion.commands.map",
 )
 
 for _name in _COMMAND_MODULES:

@@ -1,0 +1,232 @@
+"""Neural SDF field: trilinear interpolation of vertex embeddings + a small decoder MLP.
+
+Units: the SDF is in **metres** everywhere (decoder output, renderer, losses, mesh extraction), positive
+in front of surfaces (free space), negative behind. Colour is RGB in ``[0, 1]``.
+
+A *field* is any callable ``field(points_world [K, 3], voxel_idx [K]) -> (sdf_m [K], rgb [K, 3] | None)``
+(:data:`SDFField`). :class:`NeuralField` (a map + an :class:`SDFDecoder`) is the learned one; tests plug
+in analytic SDFs through the same interface.
+
+Example:
+    >>> vmap = VoxelMap(0.2, embed_dim=16, seed=0)
+    >>> n_new = vmap.allocate(torch.rand(100, 3))
+    >>> decoder = SDFDecoder(FieldConfig())
+    >>> sdf_m, rgb, valid = query(vmap, decoder, torch.rand(10, 3))
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from .errors import ConfigError, ShapeError, ValidationError
+from .voxels import CORNER_OFFSETS, VoxelMap
+
+__all__ = [
+    "SDFField",
+    "FieldConfig",
+    "SDFDecoder",
+    "NeuralField",
+    "local_coords",
+    "interpolate",
+    "query",
+]
+
+SDFField = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]]
+"""``field(points_world [K, 3] float, voxel_idx [K] int64) -> (sdf_m [K], rgb [K, 3] in [0, 1] or None)``."""
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    """Decoder architecture. Defaults follow Vox-Fusion's Replica setting (depth 2, width 128)."""
+
+    embed_dim: int = 16
+    """Size of the vertex embeddings (must match the map's ``embed_dim``)."""
+    sdf_hidden: int = 128
+    """Width of the SDF MLP's hidden layers."""
+    sdf_layers: int = 2
+    """Number of hidden ``Linear + ReLU`` layers of the SDF MLP (paper: 2-4)."""
+    geo_feature_dim: int = 32
+    """Size of the hidden geometry feature the SDF head passes to the colour head."""
+    color_hidden: int = 128
+    """Width of the colour head's hidden layers."""
+    color_layers: int = 2
+    """Number of ``Linear`` layers of the colour head (2 = one hidden layer, as in the paper)."""
+    use_color: bool = True
+    """False for depth-only captures: no colour head; fields return ``rgb=None``."""
+    local_coord_freqs: int = 0
+    """Frequencies of a NeRF positional encoding of the in-voxel coordinate appended to the embedding
+    (0 = off, the paper's setting)."""
+    sdf_scale_m: float = 0.1
+    """The decoder's raw scalar is multiplied by this to give metres (Vox-Fusion's raw output is in
+    truncation units, 0.1 m); it only conditions optimisation, the API is always metres."""
+
+    def __post_init__(self) -> None:
+        for name in ("embed_dim", "sdf_hidden", "sdf_layers", "geo_feature_dim", "color_hidden",
+                     "color_layers"):
+            if getattr(self, name) < 1:
+                raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
+        if self.local_coord_freqs < 0:
+            raise ConfigError("local_coord_freqs", f"must be >= 0, got {self.local_coord_freqs}")
+        if not (math.isfinite(self.sdf_scale_m) and self.sdf_scale_m > 0):
+            raise ConfigError("sdf_scale_m", f"must be > 0, got {self.sdf_scale_m}")
+
+    @property
+    def input_dim(self) -> int:
+        """Width of the decoder input: embedding (+ encoded local coordinate)."""
+        pe = 3 + 6 * self.local_coord_freqs if self.local_coord_freqs > 0 else 0
+        return self.embed_dim + pe
+
+
+class SDFDecoder(nn.Module):
+    """MLP decoding interpolated embeddings to SDF (metres) and RGB.
+
+    SDF head: ``input -> [Linear(., sdf_hidden) + ReLU] x sdf_layers -> Linear(., 1 + geo_feature_dim)``;
+    the first output (times ``sdf_scale_m``) is the SDF, the rest a geometry feature. Colour head:
+    ``[feature, input] -> [Linear + ReLU] x (color_layers - 1) -> Linear(., 3) -> sigmoid``.
+    """
+
+    def __init__(self, config: FieldConfig | None = None) -> None:
+        super().__init__()
+        self.config = config = config or FieldConfig()
+        layers: list[nn.Module] = []
+        width = config.input_dim
+        for _ in range(config.sdf_layers):
+            layers += [nn.Linear(width, config.sdf_hidden), nn.ReLU()]
+            width = config.sdf_hidden
+        layers.append(nn.Linear(width, 1 + config.geo_feature_dim))
+        self.sdf_net = nn.Sequential(*layers)
+        self.color_net: nn.Sequential | None = None
+        if config.use_color:
+            clayers: list[nn.Module] = []
+            width = config.geo_feature_dim + config.input_dim
+            for _ in range(config.color_layers - 1):
+                clayers += [nn.Linear(width, config.color_hidden), nn.ReLU()]
+                width = config.color_hidden
+            clayers += [nn.Linear(width, 3), nn.Sigmoid()]
+            self.color_net = nn.Sequential(*clayers)
+
+    def encode_input(self, features: torch.Tensor, local_xyz: torch.Tensor | None) -> torch.Tensor:
+        """Decoder input ``[K, input_dim]`` from features ``[K, D]`` and local coordinates ``[K, 3]``."""
+        L = self.config.local_coord_freqs
+        if L == 0:
+            return features
+        if local_xyz is None:
+            raise ValidationError("local_xyz", "required when FieldConfig.local_coord_freqs > 0")
+        x = local_xyz.to(features.dtype) * 2.0 - 1.0
+        freqs = (2.0 ** torch.arange(L, device=x.device, dtype=x.dtype)) * math.pi
+        ang = (x[:, :, None] * freqs).reshape(x.shape[0], -1)
+        return torch.cat([features, x, torch.sin(ang), torch.cos(ang)], -1)
+
+    def forward(self, features: torch.Tensor,
+                local_xyz: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Decode ``features [K, embed_dim]`` (and ``local_xyz [K, 3]`` in [0, 1]^3 if encoded).
+
+        Returns:
+            ``sdf_m [K]`` metres and ``rgb [K, 3]`` in [0, 1] (None when ``use_color`` is False).
+        """
+        if features.dim() != 2 or features.shape[1] != self.config.embed_dim:
+            raise ShapeError("features", tuple(features.shape), f"[K, {self.config.embed_dim}]")
+        x = self.encode_input(features, local_xyz)
+        out = self.sdf_net(x)
+        sdf_m = out[:, 0] * self.config.sdf_scale_m
+        if self.color_net is None:
+            return sdf_m, None
+        return sdf_m, self.color_net(torch.cat([out[:, 1:], x], -1))
+
+
+def local_coords(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor) -> torch.Tensor:
+    """In-voxel coordinates ``[K, 3]`` in ``[0, 1]^3`` (clamped) of points ``[K, 3]`` in voxels ``[K]``.
+
+    ``voxel_idx`` entries must be valid (>= 0).
+    """
+    origin = voxel_map.voxel_coords[voxel_idx].to(points_world.dtype) * voxel_map.voxel_size_m
+    return ((points_world - origin) / voxel_map.voxel_size_m).clamp(0.0, 1.0)
+
+
+def interpolate(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor,
+                local_xyz: torch.Tensor | None = None) -> torch.Tensor:
+    """Trilinearly interpolate the 8 corner embeddings of each point's voxel.
+
+    Args:
+        voxel_map: the map (its current ``embeddings`` are used; gradients flow to them).
+        points_world: ``[K, 3]`` world points, metres (gradients flow to them too).
+        voxel_idx: ``[K]`` int64 voxel of each point, all >= 0 (see :meth:`VoxelMap.lookup_voxels`).
+        local_xyz: optional precomputed :func:`local_coords`.
+
+    Returns:
+        ``[K, embed_dim]`` features, same dtype as the embeddings.
+    """
+    if points_world.dim() != 2 or points_world.shape[1] != 3:
+        raise ShapeError("points_world", tuple(points_world.shape), "[K, 3]")
+    if voxel_idx.shape != points_world.shape[:1]:
+        raise ShapeError("voxel_idx", tuple(voxel_idx.shape), f"[{points_world.shape[0]}]")
+    if voxel_idx.numel() and int(voxel_idx.min()) < 0:
+        raise ValidationError("voxel_idx", "contains -1 (points outside allocated voxels); mask them first")
+    if local_xyz is None:
+        local_xyz = local_coords(voxel_map, points_world, voxel_idx)
+    emb = voxel_map.embeddings
+    corner_ids = voxel_map.voxel_vertex_ids[voxel_idx]  # [K, 8]
+    corners = emb[corner_ids]  # [K, 8, D]
+    off = CORNER_OFFSETS.to(local_xyz.device, local_xyz.dtype)  # [8, 3]
+    x = local_xyz[:, None, :]
+    w = (off * x + (1.0 - off) * (1.0 - x)).prod(-1)  # [K, 8]
+    return (w.to(emb.dtype)[:, :, None] * corners).sum(1)
+
+
+class NeuralField:
+    """The learned :data:`SDFField`: ``NeuralField(voxel_map, decoder)(points_world, voxel_idx)``.
+
+    Reads ``voxel_map.embeddings`` at call time, so it stays valid when the map grows.
+    """
+
+    def __init__(self, voxel_map: VoxelMap, decoder: SDFDecoder) -> None:
+        if decoder.config.embed_dim != voxel_map.embed_dim:
+            raise ValidationError(
+                "decoder.config.embed_dim",
+                f"{decoder.config.embed_dim} does not match the map's embed_dim {voxel_map.embed_dim}",
+            )
+        self.voxel_map = voxel_map
+        self.decoder = decoder
+
+    def __call__(self, points_world: torch.Tensor,
+                 voxel_idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        loc = local_coords(self.voxel_map, points_world, voxel_idx)
+        feats = interpolate(self.voxel_map, points_world, voxel_idx, loc)
+        return self.decoder(feats, loc)
+
+
+def query(voxel_map: VoxelMap, decoder: SDFDecoder, points_world: torch.Tensor,
+          chunk: int = 65536) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """Evaluate the field at arbitrary world points (lookup + interpolate + decode), chunked.
+
+    Args:
+        points_world: ``[N, 3]`` metres.
+        chunk: points per decoder call (bounds memory).
+
+    Returns:
+        ``sdf_m [N]`` (NaN where invalid), ``rgb [N, 3]`` (0 where invalid; None without a colour head),
+        ``valid [N]`` bool: the point lies in an allocated voxel. Runs under the caller's grad mode
+        (wrap in ``torch.no_grad()`` for mesh extraction).
+    """
+    if chunk < 1:
+        raise ValidationError("chunk", f"must be >= 1, got {chunk}")
+    field = NeuralField(voxel_map, decoder)
+    idx = voxel_map.lookup_voxels(points_world)
+    valid = idx >= 0
+    dtype = voxel_map.embeddings.dtype
+    pts = points_world.to(voxel_map.device, dtype)
+    sdf = torch.full((pts.shape[0],), float("nan"), dtype=dtype, device=pts.device)
+    rgb = torch.zeros(pts.shape[0], 3, dtype=dtype, device=pts.device) if decoder.config.use_color else None
+    sel = torch.nonzero(valid).squeeze(1)
+    for s in range(0, int(sel.numel()), chunk):
+        rows = sel[s:s + chunk]
+        d, c = field(pts[rows], idx[rows])
+        sdf = sdf.index_put((rows,), d)
+        if rgb is not None and c is not None:
+            rgb = rgb.index_put((rows,), c)
+    return sdf, rgb, valid

@@ -1,0 +1,99 @@
+"""Frames on the compute device, and random pixel sampling for tracking and mapping.
+
+A :class:`FrameData` holds one frame's depth, colour and intrinsics as tensors on the map's device,
+plus the flat indices of its usable pixels, so every optimisation iteration samples rays without
+touching numpy or the disk.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .datasets.frame import RGBDFrame
+from .errors import ValidationError
+
+__all__ = ["FrameData", "PixelBatch", "frame_to_device", "sample_pixels"]
+
+
+@dataclass
+class FrameData:
+    """One frame's observations on the compute device.
+
+    Attributes:
+        index: position of the frame in its capture.
+        timestamp_s: capture time (s).
+        depth_m: ``[H, W]`` float32 metres, 0 = invalid (already range- and confidence-filtered).
+        color: ``[H, W, 3]`` float32 RGB in [0, 1], or None for depth-only captures.
+        K: ``[3, 3]`` float64 intrinsics for ``(W, H)``.
+        valid_idx: ``[P]`` int64 flat indices ``v * W + u`` of pixels with valid depth.
+    """
+
+    index: int
+    timestamp_s: float
+    depth_m: torch.Tensor
+    color: torch.Tensor | None
+    K: torch.Tensor
+    valid_idx: torch.Tensor
+
+    @property
+    def height(self) -> int:
+        return int(self.depth_m.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.depth_m.shape[1])
+
+    @property
+    def n_valid(self) -> int:
+        return int(self.valid_idx.numel())
+
+
+@dataclass
+class PixelBatch:
+    """Sampled pixels of one frame: ``uv [N, 2]`` float64 (u = column, v = row), ``depth_m [N]``,
+    ``color [N, 3]`` in [0, 1] or None."""
+
+    uv: torch.Tensor
+    depth_m: torch.Tensor
+    color: torch.Tensor | None
+
+
+def frame_to_device(frame: RGBDFrame, device: torch.device | str, min_depth_m: float = 0.05,
+                    max_depth_m: float = 10.0, min_confidence: int | None = None,
+                    use_color: bool = True) -> FrameData:
+    """Move a frame to ``device``; depth outside ``[min_depth_m, max_depth_m]`` (and pixels below
+    ``min_confidence`` when the frame has a confidence map) become invalid."""
+    depth = np.asarray(frame.depth_m, dtype=np.float32)
+    ok = np.isfinite(depth) & (depth >= min_depth_m) & (depth <= max_depth_m)
+    if min_confidence is not None and frame.confidence is not None:
+        ok &= frame.confidence >= min_confidence
+    depth = np.where(ok, depth, 0.0).astype(np.float32)
+    d = torch.from_numpy(depth).to(device)
+    color = None
+    if use_color and frame.color is not None:
+        color = torch.from_numpy(np.ascontiguousarray(frame.color)).to(device).float() / 255.0
+    valid_idx = torch.nonzero(d.reshape(-1) > 0).squeeze(1)
+    return FrameData(index=frame.index, timestamp_s=float(frame.timestamp_s), depth_m=d, color=color,
+                     K=torch.as_tensor(frame.K, dtype=torch.float64, device=device), valid_idx=valid_idx)
+
+
+def sample_pixels(frame: FrameData, n: int, generator: torch.Generator | None = None) -> PixelBatch:
+    """Draw ``n`` pixels uniformly (with replacement) among the frame's valid-depth pixels.
+
+    Raises:
+        ValidationError: the frame has no valid depth pixel.
+    """
+    if frame.n_valid == 0:
+        raise ValidationError("depth_m", f"frame {frame.index} has no valid depth pixel to sample")
+    pick = torch.randint(0, frame.n_valid, (n,), generator=generator, device="cpu").to(frame.valid_idx.device)
+    flat = frame.valid_idx[pick]
+    w = frame.width
+    u = (flat % w).to(torch.float64)
+    v = torch.div(flat, w, rounding_mode="floor").to(torch.float64)
+    uv = torch.stack([u, v], -1)
+    depth = frame.depth_m.reshape(-1)[flat]
+    color = frame.color.reshape(-1, 3)[flat] if frame.color is not None else None
+    return PixelBatch(uv=uv, depth_m=depth, color=color)

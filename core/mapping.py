@@ -1,0 +1,238 @@
+"""Mapping (paper §4.3): voxel allocation, keyframe selection and joint optimisation of the map.
+
+The :class:`Mapper` owns the sparse voxel map, the decoder and their optimiser. Each frame handed to
+:meth:`Mapper.integrate` (with its camera pose) is fused in three steps:
+
+1. **Allocate** a voxel for every back-projected depth point that falls in no voxel yet.
+2. **Keyframe test**: the frame becomes a keyframe when ``N_c / N_o`` (voxels it would newly allocate /
+   voxels it observes that exist already, counted before step 1) exceeds ``keyframe_ratio``, or when no
+   keyframe was taken for ``keyframe_max_interval`` frames. The first frame is always a keyframe.
+3. **Optimise** ``iters`` times a window of ``window_keyframes`` random keyframes plus the newest frame,
+   ``rays_per_frame`` rays each, with the paper's losses; Adam updates embeddings and decoder.
+
+Poses here are given (known-pose mapping, ``voxfusion map``); the tracking layer adds pose estimation
+and hands refined poses in the same way.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .errors import ConfigError, ValidationError
+from .field import FieldConfig, SDFDecoder, query
+from .framedata import FrameData, sample_pixels
+from .losses import LossConfig, LossTerms, compute_losses
+from .mesh import extract_mesh
+from .render import RenderConfig, camera_rays, render_rays
+from .voxels import VoxelMap
+
+__all__ = ["MappingConfig", "Keyframe", "MappingStep", "Mapper"]
+
+
+@dataclass(frozen=True)
+class MappingConfig:
+    """Mapping options (paper symbols in brackets)."""
+
+    rays_per_frame: int = 1024
+    """[N_m] rays sampled per window frame and iteration."""
+    window_keyframes: int = 4
+    """[N_kf] random keyframes optimised with the newest frame each round."""
+    iters: int = 10
+    """Optimisation iterations per mapping round."""
+    first_frame_iters: int = 100
+    """Iterations on the first frame alone (map initialisation)."""
+    final_iters: int = 0
+    """Iterations over random keyframe windows when the run finishes (clean-up of the whole map)."""
+    lr_embeddings: float = 0.01
+    lr_decoder: float = 0.005
+    keyframe_ratio: float = 0.1
+    """[p_kf threshold] a frame whose new/observed voxel ratio exceeds this becomes a keyframe."""
+    keyframe_max_interval: int = 20
+    """[N] a keyframe is forced when none was taken for this many frames."""
+    map_every: int = 1
+    """Run a mapping round every ``map_every``-th frame (keyframes always get one)."""
+    min_depth_m: float = 0.05
+    max_depth_m: float = 10.0
+    """Depth outside this range is ignored (neither allocated nor supervised)."""
+    min_confidence: int | None = None
+    """Drop pixels whose confidence (0/1/2) is below this, when the frame has a confidence map."""
+    alloc_stride: int = 1
+    """Back-project every ``alloc_stride``-th pixel (per axis) for allocation."""
+
+    def __post_init__(self) -> None:
+        for name in ("rays_per_frame", "iters", "keyframe_max_interval", "map_every", "alloc_stride"):
+            if getattr(self, name) < 1:
+                raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
+        for name in ("window_keyframes", "first_frame_iters", "final_iters"):
+            if getattr(self, name) < 0:
+                raise ConfigError(name, f"must be >= 0, got {getattr(self, name)}")
+        if not 0 < self.min_depth_m < self.max_depth_m:
+            raise ConfigError("min_depth_m", "need 0 < min_depth_m < max_depth_m")
+
+
+@dataclass
+class Keyframe:
+    """A frame kept for joint optimisation: its observations and its camera-to-world pose ``[4, 4]``."""
+
+    data: FrameData
+    T_world_cam: torch.Tensor
+
+
+@dataclass(frozen=True)
+class MappingStep:
+    """What one :meth:`Mapper.integrate` call did."""
+
+    frame_index: int
+    is_keyframe: bool
+    new_voxels: int
+    observed_voxels: int
+    iterations: int
+    loss: float
+    time_ms: float
+
+
+def _backproject(frame: FrameData, T_world_cam: torch.Tensor, stride: int) -> torch.Tensor:
+    """``[N, 3]`` world points of the frame's valid depth (every ``stride``-th pixel per axis)."""
+    d = frame.depth_m[::stride, ::stride]
+    v, u = torch.nonzero(d > 0, as_tuple=True)
+    z = d[v, u].to(torch.float64)
+    K = frame.K
+    x = (u.to(torch.float64) * stride - K[0, 2]) / K[0, 0] * z
+    y = (v.to(torch.float64) * stride - K[1, 2]) / K[1, 1] * z
+    pts = torch.stack([x, y, z], -1)
+    T = T_world_cam.detach().to(pts.device, torch.float64)
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+class Mapper:
+    """Owns the map (voxels + decoder) and fuses posed frames into it.
+
+    Args:
+        voxel_size_m: voxel edge (paper: 0.2 m).
+        field: decoder architecture; ``field.use_color=False`` for depth-only captures.
+        render: renderer options; loss: loss weights; mapping: :class:`MappingConfig`.
+        device: compute device; seed: seeds ray sampling, window choice and embedding initialisation.
+    """
+
+    def __init__(self, voxel_size_m: float, field: FieldConfig, render: RenderConfig, loss: LossConfig,
+                 mapping: MappingConfig, device: torch.device | str = "cpu", seed: int = 0) -> None:
+        self.device = torch.device(device)
+        self.field_config = field
+        self.render_config = render
+        self.loss_config = loss
+        self.config = mapping
+        torch.manual_seed(seed)
+        self.voxels = VoxelMap(voxel_size_m, field.embed_dim, self.device, seed=seed)
+        self.decoder = SDFDecoder(field).to(self.device)
+        self.rebuild_optimizer()
+        self.keyframes: list[Keyframe] = []
+        self.generator = torch.Generator().manual_seed(seed)
+        self._rng = random.Random(seed)
+        self._frames_since_keyframe = 0
+        self._n_integrated = 0
+        self.version = 0
+        """Bumped after every optimisation round (cache key for meshes and renders)."""
+
+    def rebuild_optimizer(self) -> None:
+        """A fresh Adam over the current embeddings and decoder (after loading or moving the map)."""
+        self.optimizer = torch.optim.Adam([
+            {"params": [self.voxels.embeddings], "lr": self.config.lr_embeddings},
+            {"params": list(self.decoder.parameters()), "lr": self.config.lr_decoder},
+        ])
+
+    # ------------------------------------------------------------------ fusion
+    def integrate(self, frame: FrameData, T_world_cam: torch.Tensor | np.ndarray) -> MappingStep:
+        """Fuse one frame with its camera-to-world pose ``[4, 4]`` (OpenCV axes, metres)."""
+        t0 = time.perf_counter()
+        T = torch.as_tensor(np.asarray(T_world_cam) if not isinstance(T_world_cam, torch.Tensor)
+                            else T_world_cam, dtype=torch.float64, device=self.device).detach()
+        if frame.n_valid == 0:
+            raise ValidationError("depth_m", f"frame {frame.index} has no valid depth; nothing to fuse")
+        points = _backproject(frame, T, self.config.alloc_stride)
+        n_new, n_obs = self.voxels.count_new_voxels(points)
+        first = not self.keyframes
+        is_kf = (first or self._frames_since_keyframe + 1 >= self.config.keyframe_max_interval
+                 or n_new > self.config.keyframe_ratio * max(n_obs, 1))
+        self.voxels.allocate(points, self.optimizer)
+        current = Keyframe(frame, T)
+        if is_kf:
+            self.keyframes.append(current)
+            self._frames_since_keyframe = 0
+        else:
+            self._frames_since_keyframe += 1
+        iters = 0
+        loss = float("nan")
+        if first:
+            iters = self.config.first_frame_iters
+        elif is_kf or self._n_integrated % self.config.map_every == 0:
+            iters = self.config.iters
+        if iters:
+            loss = self.optimize(iters, newest=current)
+        self._n_integrated += 1
+        return MappingStep(frame.index, is_kf, n_new, n_obs, iters, loss, (time.perf_counter() - t0) * 1e3)
+
+    def optimize(self, iters: int, newest: Keyframe | None = None) -> float:
+        """Run ``iters`` joint iterations on windows of random keyframes (+ ``newest``); mean loss."""
+        total = 0.0
+        for _ in range(iters):
+            window = self._window(newest)
+            terms = self.step(window)
+            total += float(terms.total.detach())
+        self.version += 1
+        return total / max(iters, 1)
+
+    def _window(self, newest: Keyframe | None) -> list[Keyframe]:
+        pool = [kf for kf in self.keyframes if kf is not newest]
+        k = min(self.config.window_keyframes, len(pool))
+        window = self._rng.sample(pool, k) if k else []
+        if newest is not None:
+            window.append(newest)
+        elif not window and self.keyframes:
+            window = [self.keyframes[-1]]
+        return window
+
+    def step(self, window: list[Keyframe]) -> LossTerms:
+        """One optimisation iteration over ``window`` (``rays_per_frame`` rays per frame)."""
+        origins, dirs, depth, color = [], [], [], []
+        for kf in window:
+            px = sample_pixels(kf.data, self.config.rays_per_frame, self.generator)
+            o, d = camera_rays(kf.data.K, kf.T_world_cam, px.uv)
+            origins.append(o)
+            dirs.append(d)
+            depth.append(px.depth_m)
+            color.append(px.color)
+        o = torch.cat(origins)
+        d = torch.cat(dirs)
+        depth_gt = torch.cat(depth)
+        color_gt = torch.cat(color) if all(c is not None for c in color) else None
+        t_far = depth_gt + self.render_config.truncation_m
+        out = render_rays(self.voxels, self.decoder, o, d, self.render_config, training=True,
+                          generator=self.generator, t_far=t_far)
+        terms = compute_losses(out, depth_gt, color_gt if self.field_config.use_color else None,
+                               self.loss_config)
+        self.optimizer.zero_grad(set_to_none=True)
+        terms.total.backward()
+        self.optimizer.step()
+        return terms
+
+    def finish(self) -> float:
+        """Final clean-up iterations over random keyframe windows (``final_iters``); mean loss."""
+        if self.config.final_iters and self.keyframes:
+            return self.optimize(self.config.final_iters)
+        return float("nan")
+
+    # ------------------------------------------------------------------ outputs
+    def query(self, points_world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """Field at world points: ``(sdf_m [N], rgb [N, 3] or None, valid [N])`` (no gradient)."""
+        with torch.no_grad():
+            return query(self.voxels, self.decoder, points_world.to(self.device))
+
+    def extract_mesh(self, mesh_res: int = 8):  # noqa: ANN201 - trimesh.Trimesh
+        """Triangle mesh of the zero level set inside allocated voxels, with vertex colours."""
+        return extract_mesh(self.voxels.voxel_coords, self.voxels.voxel_size_m, self.query,
+                            mesh_res=mesh_res, device=self.device)

@@ -1,0 +1,138 @@
+"""Mapping with known poses: ``voxfusion map`` as a library call.
+
+Every frame of a capture is fused with its reference pose; the outputs (mesh, voxel map, checkpoint,
+metrics, timings) are written to one folder.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from tqdm import tqdm
+
+from .checkpoint import save_checkpoint
+from .datasets.frame import Capture
+from .errors import ValidationError
+from .eval.report import write_json
+from .framedata import frame_to_device
+from .mapping import Mapper, MappingStep
+from .mesh import export_mesh
+from .slam_config import VoxFusionConfig, resolve_device
+from .trajectory import Trajectory, write_tum_trajectory
+from .voxel_export import export_voxels
+
+__all__ = ["MapRunResult", "make_mapper", "map_capture", "write_map_outputs"]
+
+
+@dataclass
+class MapRunResult:
+    """Outputs of :func:`map_capture`: the mapper, the mesh, the poses used, per-frame steps and timings."""
+
+    mapper: Mapper
+    mesh: trimesh.Trimesh
+    trajectory: Trajectory
+    steps: list[MappingStep]
+    wall_s: float
+    mesh_s: float
+    out_dir: Path | None
+
+    @property
+    def fps(self) -> float:
+        return len(self.steps) / self.wall_s if self.wall_s > 0 else float("nan")
+
+    def timing_summary(self) -> dict[str, float]:
+        iters = sum(s.iterations for s in self.steps)
+        map_ms = sum(s.time_ms for s in self.steps)
+        return {
+            "frames": len(self.steps),
+            "keyframes": sum(s.is_keyframe for s in self.steps),
+            "wall_s": self.wall_s,
+            "fps": self.fps,
+            "mapping_iterations": iters,
+            "ms_per_mapping_iteration": map_ms / iters if iters else float("nan"),
+            "mesh_extraction_s": self.mesh_s,
+        }
+
+
+def make_mapper(config: VoxFusionConfig, has_color: bool = True) -> Mapper:
+    """A :class:`Mapper` on the configured device; the colour head is dropped for depth-only captures."""
+    field_cfg = config.field if has_color else dataclasses.replace(config.field, use_color=False)
+    return Mapper(config.voxel_size_m, field_cfg, config.render, config.loss, config.mapping,
+                  device=resolve_device(config.device), seed=config.seed)
+
+
+def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path | None = None,
+                max_frames: int | None = None, progress: bool = True) -> MapRunResult:
+    """Fuse every frame of ``capture`` with its reference pose; write outputs to ``out_dir`` if given.
+
+    Frames without a reference pose are skipped (counted in the progress bar). Raises
+    ``ValidationError`` when no frame has one.
+    """
+    torch.manual_seed(config.seed)
+    n = len(capture) if max_frames is None else min(max_frames, len(capture))
+    if n == 0:
+        raise ValidationError("capture", f"{capture.name} has no frames")
+    first = capture[0]
+    mapper = make_mapper(config, has_color=first.color is not None)
+    steps: list[MappingStep] = []
+    stamps, poses = [], []
+    skipped = 0
+    t0 = time.perf_counter()
+    bar = tqdm(total=n, desc=f"map {capture.name}", unit="frame", disable=not progress, dynamic_ncols=True)
+    for frame in capture.frames(0, n):
+        if frame.T_world_cam is None:
+            skipped += 1
+            bar.update(1)
+            continue
+        data = frame_to_device(frame, mapper.device, config.mapping.min_depth_m, config.mapping.max_depth_m,
+                               config.mapping.min_confidence, use_color=mapper.field_config.use_color)
+        if data.n_valid == 0:
+            skipped += 1
+            bar.update(1)
+            continue
+        steps.append(mapper.integrate(data, frame.T_world_cam))
+        stamps.append(frame.timestamp_s)
+        poses.append(frame.T_world_cam)
+        elapsed = time.perf_counter() - t0
+        bar.set_postfix(frame=frame.index, loss=f"{steps[-1].loss:.4f}", fps=f"{len(steps) / elapsed:.2f}",
+                        kf=len(mapper.keyframes), vox=mapper.voxels.n_voxels, skipped=skipped)
+        bar.update(1)
+    bar.close()
+    if not steps:
+        raise ValidationError("capture", f"{capture.name}: no frame has a reference pose and valid depth")
+    mapper.finish()
+    wall = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    mesh = mapper.extract_mesh(config.mesh_res)
+    mesh_s = time.perf_counter() - t1
+    traj = Trajectory(np.asarray(stamps), np.stack(poses))
+    result = MapRunResult(mapper, mesh, traj, steps, wall, mesh_s, Path(out_dir) if out_dir else None)
+    if out_dir is not None:
+        write_map_outputs(result, config)
+    return result
+
+
+def write_map_outputs(result: MapRunResult, config: VoxFusionConfig) -> None:
+    """mesh.ply, voxels.npz, voxels.ply, checkpoint.pt, trajectory.txt, timings.json in ``result.out_dir``."""
+    out = result.out_dir
+    if out is None:
+        raise ValidationError("out_dir", "no output folder given")
+    out.mkdir(parents=True, exist_ok=True)
+    m = result.mapper
+    export_mesh(result.mesh, out / "mesh.ply")
+    export_voxels(m.voxels, out / "voxels.npz", m.decoder)
+    export_voxels(m.voxels, out / "voxels.ply")
+    save_checkpoint(out / "checkpoint.pt", m, config, result.trajectory)
+    write_tum_trajectory(out / "trajectory.txt", result.trajectory)
+    mem = m.voxels.memory_report(m.decoder)
+    write_json(out / "timings.json", {
+        **result.timing_summary(),
+        "memory": dataclasses.asdict(mem),
+        "per_frame": [dataclasses.asdict(s) for s in result.steps],
+    })

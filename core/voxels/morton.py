@@ -1,0 +1,138 @@
+"""Morton (Z-order) codes of integer lattice coordinates, and sorted-code set helpers.
+
+Codes interleave 21 bits per axis (x in bit 0, y in bit 1, z in bit 2, ...) of ``coord + 2**20``, so
+coordinates in ``[-2**20, 2**20 - 1]`` are encodable (about +-209 km at 0.2 m voxels). The octree is
+implicit: the parent of a code is ``code >> 3`` (a cell of twice the edge on the offset lattice).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..errors import ShapeError, ValidationError
+
+__all__ = [
+    "MORTON_BITS",
+    "MORTON_OFFSET",
+    "MORTON_MIN_COORD",
+    "MORTON_MAX_COORD",
+    "CORNER_OFFSETS",
+    "morton_encode",
+    "morton_decode",
+    "morton_encode_planar",
+    "check_coord_range",
+    "find_sorted",
+    "merge_sorted",
+]
+
+MORTON_BITS = 21
+"""Bits per axis in a Morton code."""
+MORTON_OFFSET = 1 << (MORTON_BITS - 1)
+"""Added to each integer coordinate before encoding so negative coordinates work."""
+MORTON_MIN_COORD = -MORTON_OFFSET
+MORTON_MAX_COORD = MORTON_OFFSET - 1
+
+CORNER_OFFSETS = torch.tensor(
+    [[dx, dy, dz] for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)], dtype=torch.int64
+)
+"""``[8, 3]`` int64 lattice offsets of a voxel's corners; row ``c`` is corner ``c = 4 dx + 2 dy + dz``."""
+
+
+def _spread_bits(x: torch.Tensor) -> torch.Tensor:
+    x = x & 0x1FFFFF
+    x = (x | (x << 32)) & 0x1F00000000FFFF
+    x = (x | (x << 16)) & 0x1F0000FF0000FF
+    x = (x | (x << 8)) & 0x100F00F00F00F00F
+    x = (x | (x << 4)) & 0x10C30C30C30C30C3
+    x = (x | (x << 2)) & 0x1249249249249249
+    return x
+
+
+def _compact_bits(x: torch.Tensor) -> torch.Tensor:
+    x = x & 0x1249249249249249
+    x = (x ^ (x >> 2)) & 0x10C30C30C30C30C3
+    x = (x ^ (x >> 4)) & 0x100F00F00F00F00F
+    x = (x ^ (x >> 8)) & 0x1F0000FF0000FF
+    x = (x ^ (x >> 16)) & 0x1F00000000FFFF
+    x = (x ^ (x >> 32)) & 0x1FFFFF
+    return x
+
+
+def check_coord_range(ijk: torch.Tensor, field: str, lo: int = MORTON_MIN_COORD,
+                       hi: int = MORTON_MAX_COORD) -> None:
+    """Raise ``ValidationError(field)`` unless every entry of ``ijk [..., 3]`` lies in ``[lo, hi]``."""
+    if ijk.numel() and (bool((ijk < lo).any()) or bool((ijk > hi).any())):
+        bad = ijk.reshape(-1, 3)[((ijk.reshape(-1, 3) < lo) | (ijk.reshape(-1, 3) > hi)).any(-1)][0]
+        raise ValidationError(
+            field,
+            f"integer voxel coordinate {bad.tolist()} lies outside the Morton-encodable range "
+            f"[{lo}, {hi}] per axis",
+        )
+
+
+def morton_encode(ijk: torch.Tensor) -> torch.Tensor:
+    """Morton-encode integer lattice coordinates.
+
+    Args:
+        ijk: ``[..., 3]`` integer tensor, each entry in ``[-2**20, 2**20 - 1]``.
+
+    Returns:
+        ``[...]`` int64 codes (non-negative; bit ``3k + a`` holds bit ``k`` of axis ``a`` + offset).
+
+    Raises:
+        ShapeError: last dimension is not 3. ValidationError: a coordinate is out of range.
+    """
+    if ijk.shape[-1:] != (3,):
+        raise ShapeError("ijk", tuple(ijk.shape), "[..., 3]")
+    if ijk.is_floating_point() or ijk.is_complex():
+        raise ValidationError("ijk", f"must be an integer tensor, got {ijk.dtype}")
+    ijk = ijk.to(torch.int64)
+    check_coord_range(ijk, "ijk")
+    # axis-first contiguous copy: the bit tricks are far faster on contiguous tensors
+    return morton_encode_planar(ijk.movedim(-1, 0).contiguous())
+
+
+def morton_encode_planar(ijk_planar: torch.Tensor) -> torch.Tensor:
+    """:func:`morton_encode` for axis-first int64 coordinates ``[3, ...]`` -> codes ``[...]``.
+
+    No range check: the caller guarantees every entry lies in ``[MORTON_MIN_COORD, MORTON_MAX_COORD]``.
+    """
+    u = ijk_planar + MORTON_OFFSET
+    return _spread_bits(u[0]) | (_spread_bits(u[1]) << 1) | (_spread_bits(u[2]) << 2)
+
+
+def morton_decode(codes: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`morton_encode`: ``[...]`` int64 codes -> ``[..., 3]`` int64 coordinates."""
+    codes = codes.to(torch.int64)
+    xyz = torch.stack([_compact_bits(codes), _compact_bits(codes >> 1), _compact_bits(codes >> 2)], -1)
+    return xyz - MORTON_OFFSET
+
+
+def find_sorted(sorted_codes: torch.Tensor, perm: torch.Tensor, query: torch.Tensor) -> torch.Tensor:
+    """Index (via ``perm``) of each query code in ``sorted_codes``, -1 where absent. Same shape as query."""
+    if sorted_codes.numel() == 0:
+        return torch.full_like(query, -1)
+    pos = torch.searchsorted(sorted_codes, query).clamp_(max=sorted_codes.numel() - 1)
+    found = sorted_codes[pos] == query
+    return torch.where(found, perm[pos], torch.full_like(query, -1))
+
+
+def merge_sorted(sorted_old: torch.Tensor, perm_old: torch.Tensor, new_sorted: torch.Tensor,
+                  first_new_index: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Merge distinct ascending ``new_sorted`` (absent from ``sorted_old``) into it, in O(n + k log n).
+
+    New items get indices ``first_new_index, first_new_index + 1, ...`` in ascending-code order.
+    """
+    n, k = sorted_old.numel(), new_sorted.numel()
+    dev = sorted_old.device
+    pos_new = torch.searchsorted(sorted_old, new_sorted) + torch.arange(k, device=dev)
+    pos_old = torch.searchsorted(new_sorted, sorted_old) + torch.arange(n, device=dev)
+    merged = torch.empty(n + k, dtype=torch.int64, device=dev)
+    merged_perm = torch.empty(n + k, dtype=torch.int64, device=dev)
+    merged[pos_old] = sorted_old
+    merged[pos_new] = new_sorted
+    merged_perm[pos_old] = perm_old
+    merged_perm[pos_new] = torch.arange(first_new_index, first_new_index + k, device=dev)
+    return merged, merged_perm
+
+

@@ -1,0 +1,420 @@
+"""Sparse voxel map: Morton-keyed voxels with feature embeddings on shared voxel vertices.
+
+The world is cut into axis-aligned cubes of edge ``voxel_size_m``. Voxel ``ijk`` (int64) covers
+``[ijk * v, (ijk + 1) * v)`` in world metres, i.e. ``ijk = floor(p / v)``. Its 8 corners are the integer
+lattice points ``ijk + (dx, dy, dz)``, ``d* in {0, 1}``; corner ``c = 4 * dx + 2 * dy + dz``. A vertex is
+keyed by the Morton code of its own lattice coordinate, so neighbouring voxels share vertices (and their
+embeddings): face neighbours share 4, edge neighbours 2, corner neighbours 1.
+
+Voxels and vertices are keyed by Morton codes (:mod:`.morton`): integer coordinates in
+``[-2**20, 2**20 - 2]`` per axis (about +-209 km at 0.2 m); the octree is implicit (parent = ``code >> 3``).
+
+Lookups use a sorted copy of the codes and ``torch.searchsorted``; the sorted copy is merged (not
+re-sorted) on every allocation. Nothing is pre-allocated: the tables grow with the map, on any device.
+
+Example:
+    >>> vmap = VoxelMap(voxel_size_m=0.2, embed_dim=16, seed=0)
+    >>> vmap.allocate(torch.tensor([[0.05, 0.1, 1.0], [0.3, 0.1, 1.0]]))
+    2
+    >>> vmap.lookup_voxels(torch.tensor([[0.01, 0.01, 1.01]])).tolist()
+    [0]
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from ..errors import ShapeError, ValidationError
+from .morton import (
+    CORNER_OFFSETS,
+    MORTON_MAX_COORD,
+    MORTON_MIN_COORD,
+    check_coord_range,
+    find_sorted,
+    merge_sorted,
+    morton_decode,
+    morton_encode,
+)
+
+__all__ = ["MemoryReport", "VoxelMap"]
+
+_STATE_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MemoryReport:
+    """Sizes of a :class:`VoxelMap` (and optionally its decoder), in counts and bytes."""
+
+    n_voxels: int
+    n_vertices: int
+    embedding_bytes: int
+    """Vertex embeddings (``n_vertices * embed_dim * 4`` for float32)."""
+    index_bytes: int
+    """Codes, coordinates, vertex ids and the sorted lookup copies."""
+    decoder_bytes: int
+    """Parameters and buffers of the decoder passed to :meth:`VoxelMap.memory_report` (0 if none)."""
+
+    @property
+    def total_bytes(self) -> int:
+        return self.embedding_bytes + self.index_bytes + self.decoder_bytes
+
+
+class VoxelMap:
+    """A sparse, growable voxel map with trainable vertex embeddings.
+
+    Args:
+        voxel_size_m: voxel edge in metres (paper: 0.2).
+        embed_dim: embedding size per vertex (paper code: 16).
+        device: where the tables live (``"cpu"``, ``"cuda"``...).
+        init_std: new vertex embeddings are drawn from ``N(0, init_std**2)``.
+        seed: seed of the generator used for new embeddings (drawn on CPU, so identical on any device);
+            ``None`` uses torch's global RNG.
+
+    Attributes (read-only views; ``M`` voxels, ``V`` vertices, ``D`` = ``embed_dim``):
+        embeddings: ``torch.nn.Parameter`` ``[V, D]`` float32, the trainable leaf. **Replaced by a new,
+            longer Parameter whenever allocation adds vertices**; pass the optimizer to :meth:`allocate`
+            or call :meth:`grow_optimizer_state` afterwards so Adam keeps the moments of old rows.
+        voxel_codes: ``[M]`` int64 Morton codes, in allocation order (voxel index = row).
+        voxel_coords: ``[M, 3]`` int64 integer voxel coordinates.
+        voxel_vertex_ids: ``[M, 8]`` int64 rows of ``embeddings`` at each corner (order: CORNER_OFFSETS).
+        vertex_codes: ``[V]`` int64 Morton codes of vertex lattice coordinates (vertex index = row).
+    """
+
+    def __init__(self, voxel_size_m: float = 0.2, embed_dim: int = 16, device: str | torch.device = "cpu",
+                 init_std: float = 0.01, seed: int | None = None) -> None:
+        if not (isinstance(voxel_size_m, (int, float)) and math.isfinite(voxel_size_m) and voxel_size_m > 0):
+            raise ValidationError("voxel_size_m", f"must be a positive finite number, got {voxel_size_m!r}")
+        if not isinstance(embed_dim, int) or embed_dim <= 0:
+            raise ValidationError("embed_dim", f"must be a positive integer, got {embed_dim!r}")
+        if not init_std >= 0:
+            raise ValidationError("init_std", f"must be >= 0, got {init_std!r}")
+        self.voxel_size_m = float(voxel_size_m)
+        self.embed_dim = embed_dim
+        self.init_std = float(init_std)
+        self._generator = torch.Generator().manual_seed(seed) if seed is not None else None
+        self._former_embeddings: list[weakref.ref[torch.Tensor]] = []
+        self._reset(torch.device(device))
+
+    # ------------------------------------------------------------------ storage
+    def _reset(self, device: torch.device) -> None:
+        i64 = dict(dtype=torch.int64, device=device)
+        self._voxel_codes = torch.empty(0, **i64)
+        self._voxel_coords = torch.empty(0, 3, **i64)
+        self._voxel_vertex_ids = torch.empty(0, 8, **i64)
+        self._vertex_codes = torch.empty(0, **i64)
+        self._sorted_voxel_codes = torch.empty(0, **i64)
+        self._voxel_perm = torch.empty(0, **i64)
+        self._sorted_vertex_codes = torch.empty(0, **i64)
+        self._vertex_perm = torch.empty(0, **i64)
+        self._bounds: tuple[torch.Tensor, torch.Tensor] | None = None
+        self.embeddings = torch.nn.Parameter(torch.empty(0, self.embed_dim, device=device))
+
+    @property
+    def device(self) -> torch.device:
+        return self._voxel_codes.device
+
+    @property
+    def n_voxels(self) -> int:
+        return int(self._voxel_codes.numel())
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self._vertex_codes.numel())
+
+    @property
+    def voxel_codes(self) -> torch.Tensor:
+        return self._voxel_codes
+
+    @property
+    def voxel_coords(self) -> torch.Tensor:
+        return self._voxel_coords
+
+    @property
+    def voxel_vertex_ids(self) -> torch.Tensor:
+        return self._voxel_vertex_ids
+
+    @property
+    def vertex_codes(self) -> torch.Tensor:
+        return self._vertex_codes
+
+    @property
+    def vertex_coords(self) -> torch.Tensor:
+        """``[V, 3]`` int64 lattice coordinates of the vertices (world position = coords * voxel_size_m)."""
+        return morton_decode(self._vertex_codes)
+
+    @property
+    def voxel_centres_m(self) -> torch.Tensor:
+        """``[M, 3]`` float32 world-frame voxel centres in metres."""
+        return (self._voxel_coords.to(torch.float64) + 0.5).mul(self.voxel_size_m).to(torch.float32)
+
+    @property
+    def voxel_bounds(self) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """Inclusive ``(min, max)`` int64 ``[3]`` coordinates of the allocated voxels (None if empty)."""
+        return self._bounds
+
+    def _update_bounds(self, coords: torch.Tensor) -> None:
+        if coords.numel() == 0:
+            return
+        lo, hi = coords.min(0).values, coords.max(0).values
+        if self._bounds is not None:
+            lo, hi = torch.minimum(lo, self._bounds[0]), torch.maximum(hi, self._bounds[1])
+        self._bounds = (lo, hi)
+
+    @property
+    def sorted_voxel_codes(self) -> torch.Tensor:
+        """``[M]`` ascending voxel codes; ``voxel_codes[sorted_voxel_perm] == sorted_voxel_codes``."""
+        return self._sorted_voxel_codes
+
+    @property
+    def sorted_voxel_perm(self) -> torch.Tensor:
+        return self._voxel_perm
+
+    # ------------------------------------------------------------------ points -> voxels
+    def points_to_voxel_coords(self, points_world: torch.Tensor) -> torch.Tensor:
+        """``[N, 3]`` world points (metres) -> ``[N, 3]`` int64 voxel coordinates ``floor(p / v)``.
+
+        Computed in float64 so allocation, lookup and rendering agree on which voxel a point is in.
+        Non-finite points map to an out-of-range sentinel (``MORTON_MAX_COORD + 1``).
+        """
+        p = points_world.to(device=self.device, dtype=torch.float64)
+        ijk = torch.floor(p / self.voxel_size_m)
+        ijk = torch.nan_to_num(ijk, nan=MORTON_MAX_COORD + 1.0, posinf=MORTON_MAX_COORD + 1.0,
+                               neginf=MORTON_MIN_COORD - 1.0)
+        return ijk.clamp(MORTON_MIN_COORD - 1.0, MORTON_MAX_COORD + 1.0).to(torch.int64)
+
+    def _check_points(self, points_world: torch.Tensor, field: str) -> torch.Tensor:
+        if not isinstance(points_world, torch.Tensor):
+            raise ValidationError(field, f"expected a torch.Tensor, got {type(points_world).__name__}")
+        if points_world.dim() != 2 or points_world.shape[1] != 3:
+            raise ShapeError(field, tuple(points_world.shape), "[N, 3]")
+        if not points_world.is_floating_point():
+            raise ValidationError(field, f"must be a floating tensor (metres), got {points_world.dtype}")
+        return points_world
+
+    def _unique_point_codes(self, points_world: torch.Tensor,
+                            field: str) -> tuple[torch.Tensor, torch.Tensor]:
+        self._check_points(points_world, field)
+        if points_world.numel() and not bool(torch.isfinite(points_world).all()):
+            raise ValidationError(field, "contains non-finite coordinates")
+        ijk = self.points_to_voxel_coords(points_world)
+        # the voxel's far corner must stay encodable too
+        check_coord_range(ijk, field, MORTON_MIN_COORD, MORTON_MAX_COORD - 1)
+        codes = torch.unique(morton_encode(ijk))  # sorted ascending
+        return codes, morton_decode(codes)
+
+    def lookup_voxels(self, points_world: torch.Tensor) -> torch.Tensor:
+        """Voxel index of each world point: ``[N, 3]`` metres -> ``[N]`` int64, -1 outside allocated voxels.
+
+        Non-finite or out-of-range points give -1 (no error).
+        """
+        self._check_points(points_world, "points_world")
+        ijk = self.points_to_voxel_coords(points_world)
+        inside = ((ijk >= MORTON_MIN_COORD) & (ijk <= MORTON_MAX_COORD)).all(-1)
+        codes = morton_encode(torch.where(inside[:, None], ijk, torch.zeros_like(ijk)))
+        idx = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes)
+        return torch.where(inside, idx, torch.full_like(idx, -1))
+
+    def lookup_codes(self, codes: torch.Tensor) -> torch.Tensor:
+        """Voxel index of each Morton code (any shape, int64), -1 where no voxel is allocated."""
+        return find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes.to(self.device, torch.int64))
+
+    def count_new_voxels(self, points_world: torch.Tensor) -> tuple[int, int]:
+        """Keyframe test without allocating: ``(n_new, n_observed)`` distinct voxels the points fall in.
+
+        ``n_new`` (paper ``N_c``) would be allocated by :meth:`allocate`; ``n_observed`` (paper ``N_o``)
+        already exist.
+        """
+        codes, _ = self._unique_point_codes(points_world, "points_world")
+        found = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes) >= 0
+        n_obs = int(found.sum())
+        return int(codes.numel()) - n_obs, n_obs
+
+    # ------------------------------------------------------------------ allocation
+    def allocate(self, points_world: torch.Tensor, optimizer: torch.optim.Optimizer | None = None) -> int:
+        """Allocate a voxel for every point that lies in no allocated voxel; returns how many were new.
+
+        Duplicates are merged and the call is idempotent. New voxels are appended in ascending Morton
+        order; their missing corner vertices get fresh ``N(0, init_std**2)`` embeddings.
+
+        Args:
+            points_world: ``[N, 3]`` float world points in metres (e.g. back-projected, posed depth).
+            optimizer: if given and vertices were added, its state for the old ``embeddings`` is carried
+                over to the new Parameter (see :meth:`grow_optimizer_state`).
+
+        Raises:
+            ShapeError / ValidationError naming ``points_world`` (wrong shape, non-finite, out of range).
+        """
+        codes, coords = self._unique_point_codes(points_world, "points_world")
+        codes = codes.to(self.device)
+        coords = coords.to(self.device)
+        is_new = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes) < 0
+        new_codes, new_coords = codes[is_new], coords[is_new]
+        k = int(new_codes.numel())
+        if k == 0:
+            return 0
+        # vertices of the new voxels
+        corner_codes = morton_encode(new_coords[:, None, :] + CORNER_OFFSETS.to(self.device))  # [k, 8]
+        cand = torch.unique(corner_codes)
+        missing = find_sorted(self._sorted_vertex_codes, self._vertex_perm, cand) < 0
+        new_vertex_codes = cand[missing]
+        n_v_old = self.n_vertices
+        if new_vertex_codes.numel():
+            self._sorted_vertex_codes, self._vertex_perm = merge_sorted(
+                self._sorted_vertex_codes, self._vertex_perm, new_vertex_codes, n_v_old)
+            self._vertex_codes = torch.cat([self._vertex_codes, new_vertex_codes])
+            fresh = torch.randn(int(new_vertex_codes.numel()), self.embed_dim, generator=self._generator)
+            fresh = (fresh * self.init_std).to(self.device, self.embeddings.dtype)
+            old = self.embeddings
+            self.embeddings = torch.nn.Parameter(torch.cat([old.detach(), fresh]))
+            self._former_embeddings = [r for r in self._former_embeddings if r() is not None]
+            self._former_embeddings.append(weakref.ref(old))
+        vertex_ids = find_sorted(self._sorted_vertex_codes, self._vertex_perm, corner_codes)
+        n_old = self.n_voxels
+        self._sorted_voxel_codes, self._voxel_perm = merge_sorted(
+            self._sorted_voxel_codes, self._voxel_perm, new_codes, n_old)
+        self._voxel_codes = torch.cat([self._voxel_codes, new_codes])
+        self._voxel_coords = torch.cat([self._voxel_coords, new_coords])
+        self._voxel_vertex_ids = torch.cat([self._voxel_vertex_ids, vertex_ids])
+        self._update_bounds(new_coords)
+        if optimizer is not None:
+            self.grow_optimizer_state(optimizer)
+        return k
+
+    def grow_optimizer_state(self, optimizer: torch.optim.Optimizer) -> int:
+        """Point ``optimizer`` at the current ``embeddings`` after growth, keeping old rows' state.
+
+        Every parameter in ``optimizer`` that is a former ``embeddings`` Parameter of this map is
+        replaced by the current one; each per-parameter state tensor shaped like the old parameter
+        (Adam's ``exp_avg``, ``exp_avg_sq``, ``max_exp_avg_sq``, SGD's ``momentum_buffer``...) is
+        extended with zero rows for the new vertices; scalar state (``step``) is kept. Returns the number
+        of parameters replaced (0 when the optimizer is already up to date).
+        """
+        new = self.embeddings
+        replaced = 0
+        for group in optimizer.param_groups:
+            for i, p in enumerate(group["params"]):
+                if p is new or not any(r() is p for r in self._former_embeddings):
+                    continue
+                group["params"][i] = new
+                state = optimizer.state.pop(p, None)
+                if state is not None:
+                    grown: dict[str, Any] = {}
+                    for key, val in state.items():
+                        if isinstance(val, torch.Tensor) and val.shape == p.shape:
+                            pad = val.new_zeros((new.shape[0] - val.shape[0],) + tuple(val.shape[1:]))
+                            val = torch.cat([val, pad]).to(new.device)
+                        grown[key] = val
+                    optimizer.state[new] = grown
+                replaced += 1
+        return replaced
+
+    # ------------------------------------------------------------------ misc
+    def memory_report(self, decoder: torch.nn.Module | None = None) -> MemoryReport:
+        """Counts and byte sizes of the map (and of ``decoder``'s parameters and buffers, if given)."""
+        idx_tensors = [self._voxel_codes, self._voxel_coords, self._voxel_vertex_ids, self._vertex_codes,
+                       self._sorted_voxel_codes, self._voxel_perm, self._sorted_vertex_codes,
+                       self._vertex_perm]
+        dec = 0
+        if decoder is not None:
+            tensors = list(decoder.parameters()) + list(decoder.buffers())
+            dec = sum(t.numel() * t.element_size() for t in tensors)
+        return MemoryReport(
+            n_voxels=self.n_voxels,
+            n_vertices=self.n_vertices,
+            embedding_bytes=self.embeddings.numel() * self.embeddings.element_size(),
+            index_bytes=sum(t.numel() * t.element_size() for t in idx_tensors),
+            decoder_bytes=dec,
+        )
+
+    def state_dict(self) -> dict[str, Any]:
+        """Checkpoint contents (CPU tensors): all :meth:`load_state_dict` needs to reproduce the map.
+
+        Keys: ``version``, ``voxel_size_m``, ``embed_dim``, ``init_std``, ``voxel_codes [M]``,
+        ``vertex_codes [V]``, ``voxel_vertex_ids [M, 8]``, ``embeddings [V, D]`` and ``rng_state`` (the
+        embedding generator's state, None when unseeded), so later allocations also continue identically.
+        """
+        return {
+            "version": _STATE_VERSION,
+            "voxel_size_m": self.voxel_size_m,
+            "embed_dim": self.embed_dim,
+            "init_std": self.init_std,
+            "voxel_codes": self._voxel_codes.cpu().clone(),
+            "vertex_codes": self._vertex_codes.cpu().clone(),
+            "voxel_vertex_ids": self._voxel_vertex_ids.cpu().clone(),
+            "embeddings": self.embeddings.detach().cpu().clone(),
+            "rng_state": self._generator.get_state() if self._generator is not None else None,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Replace this map's contents (and voxel size / embed dim) with a :meth:`state_dict`, exactly.
+
+        ``embeddings`` becomes a new Parameter: rebuild optimizers that held the old one.
+        """
+        missing = {"version", "voxel_size_m", "embed_dim", "voxel_codes", "vertex_codes",
+                   "voxel_vertex_ids", "embeddings"} - set(state)
+        if missing:
+            raise ValidationError("state_dict", f"missing keys {sorted(missing)}")
+        if state["version"] != _STATE_VERSION:
+            raise ValidationError("state_dict.version", f"unsupported version {state['version']!r}")
+        dev = self.device
+        vc = torch.as_tensor(state["voxel_codes"], dtype=torch.int64, device=dev).reshape(-1)
+        tc = torch.as_tensor(state["vertex_codes"], dtype=torch.int64, device=dev).reshape(-1)
+        vid = torch.as_tensor(state["voxel_vertex_ids"], dtype=torch.int64, device=dev)
+        emb = torch.as_tensor(state["embeddings"], device=dev)
+        if vid.shape != (vc.numel(), 8):
+            raise ShapeError("state_dict.voxel_vertex_ids", tuple(vid.shape), f"({vc.numel()}, 8)")
+        if emb.dim() != 2 or emb.shape[0] != tc.numel() or emb.shape[1] != int(state["embed_dim"]):
+            raise ShapeError("state_dict.embeddings", tuple(emb.shape),
+                             f"({tc.numel()}, {state['embed_dim']})")
+        if vid.numel() and (int(vid.min()) < 0 or int(vid.max()) >= tc.numel()):
+            raise ValidationError("state_dict.voxel_vertex_ids", "vertex index out of range")
+        if torch.unique(vc).numel() != vc.numel() or torch.unique(tc).numel() != tc.numel():
+            raise ValidationError("state_dict", "duplicate voxel or vertex codes")
+        self.voxel_size_m = float(state["voxel_size_m"])
+        self.embed_dim = int(state["embed_dim"])
+        self.init_std = float(state.get("init_std", self.init_std))
+        if state.get("rng_state") is not None:
+            self._generator = torch.Generator()
+            self._generator.set_state(state["rng_state"])
+        self._former_embeddings = []
+        self._voxel_codes, self._vertex_codes, self._voxel_vertex_ids = vc, tc, vid
+        self._voxel_coords = morton_decode(vc)
+        self._bounds = None
+        self._update_bounds(self._voxel_coords)
+        self._sorted_voxel_codes, self._voxel_perm = torch.sort(vc)
+        self._sorted_vertex_codes, self._vertex_perm = torch.sort(tc)
+        self.embeddings = torch.nn.Parameter(emb.clone())
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any], device: str | torch.device = "cpu",
+                        seed: int | None = None) -> VoxelMap:
+        """Build a map from :meth:`state_dict` output on ``device``."""
+        vmap = cls(float(state.get("voxel_size_m", 0.2)), int(state.get("embed_dim", 16)), device=device,
+                   seed=seed)
+        vmap.load_state_dict(state)
+        return vmap
+
+    def to(self, device: str | torch.device) -> VoxelMap:
+        """Move every table to ``device`` (in place; returns self).
+
+        When the device changes, ``embeddings`` becomes a new Parameter: rebuild optimizers afterwards.
+        """
+        device = torch.empty(0, device=device).device  # resolves "cuda" to "cuda:<current>"
+        if device == self.device:
+            return self
+        for name in ("_voxel_codes", "_voxel_coords", "_voxel_vertex_ids", "_vertex_codes",
+                     "_sorted_voxel_codes", "_voxel_perm", "_sorted_vertex_codes", "_vertex_perm"):
+            setattr(self, name, getattr(self, name).to(device))
+        if self._bounds is not None:
+            self._bounds = (self._bounds[0].to(device), self._bounds[1].to(device))
+        self.embeddings = torch.nn.Parameter(self.embeddings.detach().to(device))
+        return self
+
+    def __repr__(self) -> str:
+        return (f"VoxelMap(voxel_size_m={self.voxel_size_m}, n_voxels={self.n_voxels}, "
+                f"n_vertices={self.n_vertices}, embed_dim={self.embed_dim}, device={self.device})")

@@ -1,0 +1,213 @@
+"""The TSDF baseline (bench/baseline_tsdf.py), the machine / memory helpers and the harness (bench/run.py).
+
+The baseline runs on tiny synthetic captures (exact ground truth) so the whole file stays fast.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("open3d")
+
+from bench.baseline_tsdf import (  # noqa: E402
+    MissingDependencyError,
+    TSDFBaselineConfig,
+    run_tsdf_baseline,
+    save_result,
+)
+from bench.machine import PeakMemory, machine_info  # noqa: E402
+from voxfusion.core.datasets.frame import BaseCapture, RGBDFrame  # noqa: E402
+from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
+from voxfusion.core.errors import ConfigError  # noqa: E402
+from voxfusion.core.eval import MeshEvalConfig, TrajectoryEvalConfig, compute_ate, compute_mesh_metrics  # noqa: E402
+from voxfusion.core.trajectory import read_tum_trajectory  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+# Small voxel-block capacity: the hash map grows on demand, and 1,000 blocks keep each run's memory low.
+FAST = TSDFBaselineConfig(voxel_size_m=0.02, depth_max_m=5.0, block_count=1000)
+
+
+class _EditedCapture(BaseCapture):
+    """A capture whose frames pass through ``edit(i, frame)``."""
+
+    def __init__(self, capture: BaseCapture, edit) -> None:
+        self.capture, self.edit = capture, edit
+        self.name, self.path = capture.name, capture.path
+
+    def __len__(self) -> int:
+        return len(self.capture)
+
+    def _load(self, i: int) -> RGBDFrame:
+        return self.edit(i, self.capture[i])
+
+
+@pytest.fixture(scope="module")
+def synthetic() -> SyntheticCapture:
+    return SyntheticCapture(SyntheticConfig(n_frames=10, width=160, height=120))
+
+
+@pytest.fixture(scope="module")
+def result(synthetic):
+    return run_tsdf_baseline(synthetic, FAST, progress=False)
+
+
+def _raw_ate_m(res, capture) -> float:
+    return compute_ate(res.trajectory, capture.trajectory, TrajectoryEvalConfig(align="none")).rmse_m
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ConfigError, match="voxel_size_m"):
+        TSDFBaselineConfig(voxel_size_m=0.0)
+    with pytest.raises(ConfigError, match="depth_min_m"):
+        TSDFBaselineConfig(depth_min_m=4.0, depth_max_m=3.0)
+    with pytest.raises(ConfigError, match="device"):
+        TSDFBaselineConfig(device="GPU")
+    with pytest.raises(ConfigError, match="block_count"):
+        TSDFBaselineConfig(block_count=0)
+
+
+def test_trajectory_has_one_pose_per_frame_in_gt_frame(result, synthetic):
+    traj = result.trajectory
+    assert len(traj) == len(synthetic) == result.n_frames
+    np.testing.assert_array_equal(traj.timestamps_s, synthetic.trajectory.timestamps_s)
+    # The first pose is the capture's first reference pose, so the estimate lives in the GT frame.
+    np.testing.assert_allclose(traj.T_world_cam[0], synthetic.trajectory.T_world_cam[0], atol=1e-12)
+    assert result.n_tracking_failures == 0 and result.failed_frames == []
+
+
+def test_trajectory_error_is_small(result, synthetic):
+    aligned = compute_ate(result.trajectory, synthetic.trajectory, TrajectoryEvalConfig(align="se3"))
+    assert aligned.rmse_m < 0.03
+    assert _raw_ate_m(result, synthetic) < 0.04
+
+
+def test_mesh_is_coloured_and_close_to_gt(result, synthetic):
+    mesh = result.mesh
+    assert len(mesh.faces) > 1000
+    colors = np.asarray(mesh.visual.vertex_colors)
+    assert colors.shape == (len(mesh.vertices), 4) and colors.dtype == np.uint8
+    assert colors[:, :3].std() > 5  # textured room, not a constant fill
+    m = compute_mesh_metrics(mesh, synthetic.gt_mesh, MeshEvalConfig(n_samples=5000))
+    assert m.accuracy_m < 0.02
+
+
+def test_timings_and_memory_are_recorded(result):
+    t = result.timings
+    for a in (t.load_ms, t.track_ms, t.integrate_ms, t.raycast_ms):
+        assert a.shape == (result.n_frames,) and np.all(a >= 0)
+    assert t.track_ms[0] == 0 and np.all(t.track_ms[1:] > 0) and np.all(t.integrate_ms > 0)
+    assert result.fps == pytest.approx(result.n_frames / (t.total_ms.sum() / 1e3))
+    assert result.memory.peak_rss_mb >= result.memory.start_rss_mb > 0
+    assert result.memory.n_samples >= result.n_frames
+
+
+def test_open3d_offset_fixes_reduce_drift(result, synthetic):
+    stock = TSDFBaselineConfig(voxel_size_m=0.02, depth_max_m=5.0, block_count=1000,
+                               fix_raycast_half_voxel=False, fix_integrate_half_pixel=False)
+    stock_result = run_tsdf_baseline(synthetic, stock, progress=False)
+    assert _raw_ate_m(result, synthetic) < 0.6 * _raw_ate_m(stock_result, synthetic)
+
+
+def test_depth_only_capture_and_max_frames(synthetic):
+    depth_only = _EditedCapture(synthetic, lambda i, f: f.with_(color=None))
+    res = run_tsdf_baseline(depth_only, FAST, max_frames=5, progress=False)
+    assert len(res.trajectory) == 5
+    colors = np.asarray(res.mesh.visual.vertex_colors)
+    assert len(colors) > 0 and np.all(np.abs(colors[:, :3].astype(int) - 128) <= 1)  # the grey fill
+
+
+def test_tracking_failure_keeps_previous_pose(synthetic):
+    blind = _EditedCapture(synthetic, lambda i, f: f.with_(depth_m=np.zeros_like(f.depth_m)) if i == 3 else f)
+    res = run_tsdf_baseline(blind, FAST, max_frames=6, progress=False)
+    assert res.failed_frames == [3] and res.n_tracking_failures == 1
+    T = res.trajectory.T_world_cam
+    np.testing.assert_array_equal(T[3], T[2])
+    assert res.timings.integrate_ms[3] == 0
+    assert not np.allclose(T[4], T[3])  # tracking resumes on the next frame
+
+
+def test_save_result_round_trip(result, tmp_path):
+    paths = save_result(result, tmp_path / "out")
+    traj = read_tum_trajectory(paths["trajectory"])
+    np.testing.assert_allclose(traj.T_world_cam, result.trajectory.T_world_cam, atol=1e-6)
+    np.testing.assert_allclose(traj.timestamps_s, result.trajectory.timestamps_s, atol=1e-9)
+    import trimesh
+
+    mesh = trimesh.load(paths["mesh"], process=False)
+    assert len(mesh.faces) == len(result.mesh.faces)
+    np.testing.assert_array_equal(np.asarray(mesh.visual.vertex_colors)[:, :3],
+                                  np.asarray(result.mesh.visual.vertex_colors)[:, :3])
+    timings = json.loads(paths["timings"].read_text())
+    assert timings["n_frames"] == result.n_frames and len(timings["per_frame_ms"]["track"]) == result.n_frames
+    assert timings["config"]["voxel_size_m"] == 0.02 and "memory" in timings
+
+
+def test_missing_open3d_raises_install_hint(synthetic, monkeypatch):
+    monkeypatch.setitem(sys.modules, "open3d", None)  # makes `import open3d` raise ImportError
+    with pytest.raises(MissingDependencyError, match=r"pip install 'voxfusion\[baseline\]'") as info:
+        run_tsdf_baseline(synthetic, FAST, progress=False)
+    assert isinstance(info.value, ImportError)
+
+
+def test_peak_memory_sees_an_allocation():
+    with PeakMemory(interval_s=0) as mem:
+        block = np.ones(100 * 2**20 // 8)  # 100 MiB, every page touched
+        mem.sample()
+        del block
+    assert mem.result.increase_mb >= 90
+    assert mem.result.peak_rss_mb >= mem.result.start_rss_mb + 90
+
+
+def test_machine_info_is_json_ready_and_hostname_free():
+    info = machine_info()
+    for key in ("cpu_model", "cpu_logical_cores", "ram_total_gb", "python", "torch", "open3d", "cuda_device"):
+        assert key in info
+    assert info["open3d"] is not None and info["cpu_logical_cores"] >= 1
+    text = json.dumps(info)
+    assert "hostname" not in text
+    host = socket.gethostname()
+    if len(host) >= 6:
+        assert host not in text
+
+
+def test_run_py_end_to_end(tmp_path):
+    cmd = [sys.executable, "bench/run.py", "--synthetic", "--frames", "8", "--width", "160", "--height", "120",
+           "--out", str(tmp_path), "--mesh-samples", "20000", "--no-progress"]
+    proc = subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "ATE cm" in proc.stdout and "baseline" in proc.stdout
+    doc = json.loads((tmp_path / "synthetic_160x120_8f_seed0.json").read_text())
+    assert doc["machine"]["cpu_model"] and "bench/run.py --synthetic" in doc["command"]
+    base = doc["methods"]["baseline"]
+    assert base["n_frames"] == 8 and base["config"]["preset"] == "synthetic"
+    assert base["ate_aligned"]["rmse_m"] < 0.03 and base["ate_unaligned"]["aligned"] is False
+    assert base["mesh"]["accuracy_m"] < 0.02 and 0.5 < base["mesh"]["completion_ratio"] <= 1.0
+    assert base["memory"]["increase_mb"] >= 0 and base["fps"] > 0
+
+
+def test_run_py_refuses_unimplemented_method(capsys):
+    from bench.run import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["--synthetic", "--method", "baseline", "voxfusion"])
+    assert info.value.code == 2
+    assert "voxfusion" in capsys.readouterr().err
+
+
+def test_real_tum_capture(shared_data):
+    from voxfusion.core.datasets import open_capture
+
+    capture = open_capture(shared_data / "tum_fr1_desk_9frames")
+    res = run_tsdf_baseline(capture, TSDFBaselineConfig(block_count=2000), progress=False)
+    ref = np.stack([f.T_world_cam for f in capture.frames()])
+    ate = compute_ate(res.trajectory.T_world_cam, ref, TrajectoryEvalConfig(align="se3"))
+    assert len(res.trajectory) == len(capture) and res.n_tracking_failures == 0
+    assert ate.rmse_m < 0.03 and len(res.mesh.faces) > 1000

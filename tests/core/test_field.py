@@ -1,0 +1,118 @@
+"""Neural field: trilinear interpolation of shared vertex embeddings, decoder, point queries."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from voxfusion.core.errors import ConfigError, ShapeError, ValidationError
+from voxfusion.core.field import FieldConfig, NeuralField, SDFDecoder, interpolate, local_coords, query
+from voxfusion.core.voxels import CORNER_OFFSETS, VoxelMap
+
+
+def _two_voxel_map() -> VoxelMap:
+    vm = VoxelMap(0.5, embed_dim=4, seed=0)
+    vm.allocate(torch.tensor([[0.25, 0.25, 0.25], [0.75, 0.25, 0.25]]))
+    with torch.no_grad():
+        vm.embeddings.normal_(generator=torch.Generator().manual_seed(1))
+    return vm
+
+
+def test_interpolation_hits_vertex_values_at_corners():
+    vm = _two_voxel_map()
+    corners = (vm.voxel_coords[0] + CORNER_OFFSETS).double() * 0.5
+    feats = interpolate(vm, corners, torch.zeros(8, dtype=torch.int64))
+    assert torch.allclose(feats, vm.embeddings[vm.voxel_vertex_ids[0]], atol=1e-6)
+
+
+def test_interpolation_matches_trilinear_formula_and_is_continuous_across_shared_faces():
+    vm = _two_voxel_map()
+    g = torch.Generator().manual_seed(2)
+    loc = torch.rand(64, 3, generator=g)
+    pts = loc * 0.5  # voxel 0 spans [0, 0.5)^3
+    feats = interpolate(vm, pts, torch.zeros(64, dtype=torch.int64))
+    e = vm.embeddings[vm.voxel_vertex_ids[0]].detach()  # [8, D], corner c = 4dx + 2dy + dz
+    x, y, z = loc[:, 0:1], loc[:, 1:2], loc[:, 2:3]
+    ref = torch.zeros_like(feats)
+    for c, (dx, dy, dz) in enumerate(CORNER_OFFSETS.tolist()):
+        w = (x if dx else 1 - x) * (y if dy else 1 - y) * (z if dz else 1 - z)
+        ref = ref + w * e[c]
+    assert torch.allclose(feats, ref, atol=1e-6)
+    # points on the shared face x = 0.5 give the same features from either voxel
+    face = torch.cat([torch.full((16, 1), 0.5), torch.rand(16, 2, generator=g) * 0.5], 1)
+    a = interpolate(vm, face, torch.zeros(16, dtype=torch.int64))
+    b = interpolate(vm, face, torch.ones(16, dtype=torch.int64))
+    assert torch.allclose(a, b, atol=1e-6)
+    assert torch.allclose(local_coords(vm, face, torch.ones(16, dtype=torch.int64))[:, 0], torch.zeros(16))
+
+
+def test_interpolate_rejects_unallocated_points_and_bad_shapes():
+    vm = _two_voxel_map()
+    with pytest.raises(ValidationError):
+        interpolate(vm, torch.zeros(2, 3), torch.tensor([0, -1]))
+    with pytest.raises(ShapeError):
+        interpolate(vm, torch.zeros(2, 2), torch.tensor([0, 0]))
+    with pytest.raises(ShapeError):
+        interpolate(vm, torch.zeros(2, 3), torch.tensor([0]))
+
+
+def test_decoder_shapes_units_and_depth_only_variant():
+    feats = torch.randn(10, 16)
+    sdf, rgb = SDFDecoder(FieldConfig())(feats)
+    assert sdf.shape == (10,) and rgb.shape == (10, 3)
+    assert ((rgb >= 0) & (rgb <= 1)).all()
+    sdf2, rgb2 = SDFDecoder(FieldConfig(use_color=False, sdf_layers=3, sdf_hidden=32))(feats)
+    assert sdf2.shape == (10,) and rgb2 is None
+    pe = SDFDecoder(FieldConfig(local_coord_freqs=4))
+    assert pe.config.input_dim == 16 + 3 + 24
+    assert pe(feats, torch.rand(10, 3))[0].shape == (10,)
+    with pytest.raises(ValidationError):
+        pe(feats)
+    with pytest.raises(ShapeError):
+        SDFDecoder()(torch.randn(10, 8))
+    # the raw output is scaled to metres by sdf_scale_m
+    torch.manual_seed(0)
+    a = SDFDecoder(FieldConfig(sdf_scale_m=0.1))
+    torch.manual_seed(0)
+    b = SDFDecoder(FieldConfig(sdf_scale_m=0.2))
+    assert torch.allclose(2 * a(feats)[0], b(feats)[0])
+
+
+def test_field_config_validation():
+    with pytest.raises(ConfigError):
+        FieldConfig(sdf_layers=0)
+    with pytest.raises(ConfigError):
+        FieldConfig(sdf_scale_m=0.0)
+    with pytest.raises(ConfigError):
+        FieldConfig(local_coord_freqs=-1)
+
+
+def test_query_marks_points_outside_voxels_invalid_and_matches_field():
+    vm = VoxelMap(0.2, seed=0)
+    inside = torch.rand(50, 3)
+    vm.allocate(inside)
+    dec = SDFDecoder()
+    pts = torch.cat([inside, torch.full((5, 3), 10.0)])
+    with torch.no_grad():
+        sdf, rgb, valid = query(vm, dec, pts, chunk=7)
+        idx = vm.lookup_voxels(pts)
+        ref_sdf, ref_rgb = NeuralField(vm, dec)(pts[idx >= 0], idx[idx >= 0])
+    assert torch.equal(valid, idx >= 0)
+    assert valid[:50].all() and not valid[50:].any()
+    assert torch.isnan(sdf[50:]).all() and (rgb[50:] == 0).all()
+    assert torch.allclose(sdf[valid], ref_sdf) and torch.allclose(rgb[valid], ref_rgb)
+    sdf_d, rgb_d, _ = query(vm, SDFDecoder(FieldConfig(use_color=False)), pts)
+    assert rgb_d is None and sdf_d.shape == (55,)
+
+
+def test_gradients_reach_embeddings_and_decoder():
+    vm = VoxelMap(0.2, seed=0)
+    vm.allocate(torch.rand(100, 3))
+    dec = SDFDecoder()
+    pts = torch.rand(64, 3)
+    sdf, rgb, valid = query(vm, dec, pts)
+    (sdf[valid].sum() + rgb[valid].sum()).backward()
+    assert vm.embeddings.grad is not None and vm.embeddings.grad.abs().sum() > 0
+    assert all(p.grad is not None for p in dec.parameters())
+    with pytest.raises(ValidationError):
+        NeuralField(vm, SDFDecoder(FieldConfig(embed_dim=8)))

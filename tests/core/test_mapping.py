@@ -1,0 +1,114 @@
+"""Known-pose mapping on a tiny synthetic room: loose accuracy bounds, keyframes, checkpoints, exports."""
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from voxfusion.core.checkpoint import load_checkpoint, save_checkpoint
+from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
+from voxfusion.core.errors import CaptureError
+from voxfusion.core.eval.mesh import MeshEvalConfig, compute_mesh_metrics, views_from_frames
+from voxfusion.core.framedata import frame_to_device
+from voxfusion.core.mapping import Mapper
+from voxfusion.core.reconstruct import map_capture
+from voxfusion.core.slam_config import load_preset
+
+TINY = ["device=cpu", "mapping.rays_per_frame=256", "mapping.iters=5", "mapping.first_frame_iters=40",
+        "field.sdf_hidden=64", "field.color_hidden=64", "mesh_res=4"]
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    cap = SyntheticCapture(SyntheticConfig(n_frames=6, width=96, height=72, seed=3))
+    out = tmp_path_factory.mktemp("map")
+    cfg = load_preset("cpu-small", TINY)
+    return cap, cfg, map_capture(cap, cfg, out, progress=False)
+
+
+def test_tiny_mapping_run_is_accurate_where_observed(tiny_run):
+    cap, _, run = tiny_run
+    assert len(run.mesh.faces) > 1000
+    views = views_from_frames(list(cap.frames()))
+    m = compute_mesh_metrics(run.mesh, cap.gt_mesh, MeshEvalConfig(n_samples=20000), views=views)
+    # Loose bounds for 6 frames x few iterations (the benchmark targets 1.5 cm on 100 frames).
+    assert m.accuracy_m < 0.03, m
+    assert m.completion_m < 0.03, m
+    assert m.completion_ratio > 0.9, m
+
+
+def test_outputs_written(tiny_run):
+    _, _, run = tiny_run
+    out = run.out_dir
+    for name in ("mesh.ply", "voxels.npz", "voxels.ply", "checkpoint.pt", "trajectory.txt", "timings.json"):
+        assert (out / name).stat().st_size > 0, name
+    mesh = trimesh.load(out / "mesh.ply", process=False)
+    assert mesh.visual.vertex_colors.shape[0] == len(mesh.vertices)
+    npz = np.load(out / "voxels.npz")
+    assert npz["morton_codes"].shape[0] == run.mapper.voxels.n_voxels
+    assert npz["voxel_vertex_ids"].shape == (run.mapper.voxels.n_voxels, 8)
+    assert any(k.startswith("decoder/") for k in npz.files)
+
+
+def test_checkpoint_round_trip_reproduces_mesh_exactly(tiny_run, tmp_path):
+    _, cfg, run = tiny_run
+    loaded = load_checkpoint(run.out_dir / "checkpoint.pt")
+    assert loaded.config == cfg
+    assert loaded.keyframe_indices == [kf.data.index for kf in run.mapper.keyframes]
+    np.testing.assert_allclose(loaded.trajectory.T_world_cam, run.trajectory.T_world_cam)
+    again = loaded.mapper.extract_mesh(cfg.mesh_res)
+    np.testing.assert_array_equal(again.vertices, run.mesh.vertices)
+    np.testing.assert_array_equal(again.faces, run.mesh.faces)
+    # and saving the loaded map again gives a loadable, identical map
+    p = save_checkpoint(tmp_path / "again.pt", loaded.mapper, loaded.config)
+    twice = load_checkpoint(p)
+    assert torch.equal(twice.mapper.voxels.embeddings, loaded.mapper.voxels.embeddings)
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(CaptureError, match="bad.pt"):
+        load_checkpoint(bad)
+    with pytest.raises(CaptureError, match="not found"):
+        load_checkpoint(tmp_path / "missing.pt")
+
+
+def test_keyframe_rule_and_first_frame():
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=1", "mapping.iters=1",
+                                           "mapping.keyframe_max_interval=3", "mapping.keyframe_ratio=0.5"])
+    cap = SyntheticCapture(SyntheticConfig(n_frames=5, width=48, height=36))
+    m = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu")
+    frames = list(cap.frames())
+    steps = [m.integrate(frame_to_device(f, "cpu"), f.T_world_cam) for f in frames[:4]]
+    assert steps[0].is_keyframe and steps[0].observed_voxels == 0
+    # nearby frames add few voxels (ratio < 0.5) so only the interval forces the next keyframe
+    assert [s.is_keyframe for s in steps] == [True, False, False, True]
+    # a frame seen from a far-away, unmapped place has a high new/observed ratio -> keyframe
+    T = frames[4].T_world_cam.copy()
+    T[:3, 3] += np.array([30.0, 0.0, 0.0])
+    s = m.integrate(frame_to_device(frames[4], "cpu"), T)
+    assert s.is_keyframe and s.new_voxels > 0 and s.observed_voxels == 0
+
+
+def test_depth_only_capture_trains_without_colour(tmp_path):
+    cap = SyntheticCapture(SyntheticConfig(n_frames=2, width=48, height=36, lidar=True))
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=5", "mapping.iters=2"])
+
+    class DepthOnly:
+        name, path = "depth-only", tmp_path
+        gt_mesh_path = None
+
+        def __len__(self):
+            return len(cap)
+
+        def __getitem__(self, i):
+            return cap[i].with_(color=None)
+
+        def frames(self, start=0, stop=None, step=1):
+            for i in range(*slice(start, stop, step).indices(len(cap))):
+                yield self[i]
+
+    run = map_capture(DepthOnly(), cfg, None, progress=False)
+    assert run.mapper.decoder.config.use_color is False
+    assert len(run.mesh.vertices) > 0

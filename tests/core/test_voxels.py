@@ -1,0 +1,263 @@
+"""Sparse voxel map: Morton codes, allocation, vertex sharing, growth with an optimizer, checkpoints."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from voxfusion.core.errors import ShapeError, ValidationError
+from voxfusion.core.voxels import (
+    CORNER_OFFSETS,
+    MORTON_MAX_COORD,
+    MORTON_MIN_COORD,
+    VoxelMap,
+    morton_decode,
+    morton_encode,
+)
+
+
+def _reference_morton(x: int, y: int, z: int) -> int:
+    """Bit-by-bit interleave of the offset coordinates (x in bit 0)."""
+    code = 0
+    for b in range(21):
+        for a, c in enumerate((x, y, z)):
+            code |= (((c + (1 << 20)) >> b) & 1) << (3 * b + a)
+    return code
+
+
+# ---------------------------------------------------------------- Morton codes
+def test_morton_matches_bitwise_reference():
+    g = torch.Generator().manual_seed(0)
+    ijk = torch.randint(MORTON_MIN_COORD, MORTON_MAX_COORD + 1, (50, 3), generator=g)
+    special = [[0, 0, 0], [-1, -1, -1], [MORTON_MIN_COORD] * 3, [MORTON_MAX_COORD] * 3,
+               [1, 0, 0], [0, 1, 0], [0, 0, 1]]
+    ijk = torch.cat([ijk, torch.tensor(special)])
+    codes = morton_encode(ijk)
+    assert codes.dtype == torch.int64
+    assert codes.tolist() == [_reference_morton(*row) for row in ijk.tolist()]
+    assert (codes >= 0).all()
+
+
+def test_morton_round_trip_including_negative_coordinates_and_batch_shapes():
+    g = torch.Generator().manual_seed(1)
+    ijk = torch.randint(MORTON_MIN_COORD, MORTON_MAX_COORD + 1, (4, 5, 3), generator=g)
+    codes = morton_encode(ijk)
+    assert codes.shape == (4, 5)
+    assert torch.equal(morton_decode(codes), ijk)
+    neg = torch.tensor([[-3, -7, -1], [-(1 << 20), 5, -2]])
+    assert torch.equal(morton_decode(morton_encode(neg)), neg)
+
+
+def test_morton_parent_is_code_shifted_by_three():
+    ijk = torch.tensor([[5, -3, 8], [-1, -1, -1], [0, 7, -8]])
+    parent = morton_decode(morton_encode(ijk) >> 3)
+    # on the offset lattice: parent = floor((c + 2^20) / 2) - 2^20
+    expected = torch.div(ijk + (1 << 20), 2, rounding_mode="floor") - (1 << 20)
+    assert torch.equal(parent, expected)
+
+
+def test_morton_range_and_shape_errors():
+    with pytest.raises(ValidationError) as e:
+        morton_encode(torch.tensor([[MORTON_MAX_COORD + 1, 0, 0]]))
+    assert e.value.field == "ijk"
+    with pytest.raises(ValidationError):
+        morton_encode(torch.tensor([[0, MORTON_MIN_COORD - 1, 0]]))
+    with pytest.raises(ShapeError):
+        morton_encode(torch.zeros(4, 2, dtype=torch.int64))
+    with pytest.raises(ValidationError):
+        morton_encode(torch.zeros(4, 3))
+
+
+# ---------------------------------------------------------------- allocation and lookup
+def _random_points(n: int, seed: int, scale: float = 3.0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(n, 3, generator=g) - 0.5) * 2 * scale
+
+
+def test_allocation_is_complete_deduplicated_and_idempotent():
+    vm = VoxelMap(voxel_size_m=0.2, seed=0)
+    pts = _random_points(2000, 0)
+    expected = torch.unique(torch.floor(pts.double() / 0.2).long(), dim=0)
+    n_new = vm.allocate(pts)
+    assert n_new == vm.n_voxels == expected.shape[0]
+    idx = vm.lookup_voxels(pts)
+    assert (idx >= 0).all()
+    assert torch.equal(vm.voxel_coords[idx], torch.floor(pts.double() / 0.2).long())
+    assert torch.equal(vm.voxel_codes, morton_encode(vm.voxel_coords))
+    assert vm.allocate(pts) == 0
+    assert vm.allocate(pts[:10].flip(0)) == 0
+    assert vm.n_voxels == expected.shape[0]
+    # a far point is not in the map
+    assert vm.lookup_voxels(torch.tensor([[50.0, 0.0, 0.0]])).tolist() == [-1]
+
+
+def test_allocation_grows_without_bound_anywhere():
+    vm = VoxelMap(voxel_size_m=0.05, seed=0)
+    total = 0
+    for k, centre in enumerate([(0.0, 0.0, 0.0), (-1000.0, 250.0, -3.0), (40000.0, -40000.0, 20.0)]):
+        pts = _random_points(300, k, 0.5) + torch.tensor(centre, dtype=torch.float64)
+        total += vm.allocate(pts)
+        assert (vm.lookup_voxels(pts) >= 0).all()
+    assert vm.n_voxels == total
+    assert vm.voxel_centres_m.shape == (total, 3)
+    # centres are within half a voxel of the points that allocated them (float32 centres: loose at 40 km)
+    assert (vm.voxel_centres_m[vm.lookup_voxels(pts)].double() - pts).abs().max() <= 0.025 + 0.01
+
+
+def test_count_new_voxels_does_not_allocate():
+    vm = VoxelMap(0.2, seed=0)
+    a = _random_points(500, 1, 1.0)
+    b = _random_points(500, 2, 1.0) + 5.0
+    vm.allocate(a)
+    n_before = vm.n_voxels
+    n_new, n_obs = vm.count_new_voxels(torch.cat([a, b]))
+    assert vm.n_voxels == n_before
+    assert n_obs == n_before
+    assert n_new == vm.allocate(b)
+    assert vm.count_new_voxels(b) == (0, n_new)
+
+
+def test_allocation_rejects_bad_points_naming_the_field():
+    vm = VoxelMap(0.2)
+    with pytest.raises(ShapeError) as e:
+        vm.allocate(torch.zeros(5, 2))
+    assert e.value.field == "points_world"
+    with pytest.raises(ValidationError) as e:
+        vm.allocate(torch.tensor([[0.0, float("nan"), 0.0]]))
+    assert e.value.field == "points_world"
+    with pytest.raises(ValidationError) as e:
+        vm.allocate(torch.tensor([[0.0, 0.0, 300_000.0]], dtype=torch.float64))  # > 2^20 * 0.2 m
+    assert e.value.field == "points_world"
+    assert vm.n_voxels == 0
+    # lookups never raise for far or non-finite points
+    assert vm.lookup_voxels(torch.tensor([[float("inf"), 0.0, 0.0], [1e9, 0, 0]])).tolist() == [-1, -1]
+    with pytest.raises(ValidationError):
+        VoxelMap(voxel_size_m=0.0)
+
+
+# ---------------------------------------------------------------- vertices
+def test_neighbouring_voxels_share_vertices():
+    vm = VoxelMap(1.0, seed=0)
+    centres = torch.tensor([[0.5, 0.5, 0.5], [1.5, 0.5, 0.5], [1.5, 1.5, 0.5], [1.5, 1.5, 1.5],
+                            [5.5, 5.5, 5.5]])
+    vm.allocate(centres)
+    vid = vm.voxel_vertex_ids
+    idx = vm.lookup_voxels(centres).tolist()
+
+    def shared(a: int, b: int) -> int:
+        return len(set(vid[idx[a]].tolist()) & set(vid[idx[b]].tolist()))
+
+    assert shared(0, 1) == 4  # face
+    assert shared(0, 2) == 2  # edge
+    assert shared(0, 3) == 1  # corner
+    assert shared(0, 4) == 0
+    assert vm.n_vertices == len(set(vid.flatten().tolist()))
+    # each voxel's corner c holds the vertex at coords + CORNER_OFFSETS[c]
+    assert torch.equal(vm.vertex_codes[vid], morton_encode(vm.voxel_coords[:, None, :] + CORNER_OFFSETS))
+    assert torch.equal(vm.vertex_coords[vid], vm.voxel_coords[:, None, :] + CORNER_OFFSETS)
+
+
+def test_new_embeddings_are_small_seeded_and_only_for_new_vertices():
+    a, b = VoxelMap(0.2, seed=7), VoxelMap(0.2, seed=7)
+    pts = _random_points(400, 3, 1.0)
+    a.allocate(pts)
+    b.allocate(pts)
+    assert torch.equal(a.embeddings, b.embeddings)
+    assert a.embeddings.shape == (a.n_vertices, 16)
+    assert 0.005 < float(a.embeddings.detach().std()) < 0.02
+    assert a.embeddings.is_leaf and a.embeddings.requires_grad
+
+
+# ---------------------------------------------------------------- growth + optimizer
+def test_growth_keeps_old_embeddings_and_adam_state():
+    vm = VoxelMap(0.2, seed=0)
+    vm.allocate(_random_points(200, 4, 0.6))
+    opt = torch.optim.Adam([vm.embeddings], lr=1e-2)
+    for _ in range(3):
+        opt.zero_grad()
+        (vm.embeddings ** 2).sum().backward()
+        opt.step()
+    old = vm.embeddings.detach().clone()
+    old_state = {k: v.clone() for k, v in opt.state[vm.embeddings].items()}
+    n_old = vm.n_vertices
+
+    n_new = vm.allocate(_random_points(200, 5, 0.6) + 2.0, optimizer=opt)
+    assert n_new > 0 and vm.n_vertices > n_old
+    assert torch.equal(vm.embeddings[:n_old].detach(), old)
+    assert opt.param_groups[0]["params"][0] is vm.embeddings
+    st = opt.state[vm.embeddings]
+    for key in ("exp_avg", "exp_avg_sq"):
+        assert st[key].shape == vm.embeddings.shape
+        assert torch.equal(st[key][:n_old], old_state[key])
+        assert (st[key][n_old:] == 0).all()
+    assert torch.equal(st["step"], old_state["step"])
+    # the optimizer keeps working on the grown table
+    opt.zero_grad()
+    (vm.embeddings ** 2).sum().backward()
+    opt.step()
+    assert not torch.equal(vm.embeddings[n_old:].detach(), torch.zeros_like(vm.embeddings[n_old:]))
+
+
+def test_grow_optimizer_state_after_several_growths():
+    vm = VoxelMap(0.2, seed=0)
+    vm.allocate(_random_points(50, 6, 0.4))
+    opt = torch.optim.Adam([{"params": [vm.embeddings], "lr": 1e-2}])
+    opt.zero_grad()
+    vm.embeddings.sum().backward()
+    opt.step()
+    n0 = vm.n_vertices
+    vm.allocate(_random_points(50, 7, 0.4) + 1.0)
+    vm.allocate(_random_points(50, 8, 0.4) - 1.0)
+    assert vm.grow_optimizer_state(opt) == 1
+    assert vm.grow_optimizer_state(opt) == 0
+    assert opt.state[vm.embeddings]["exp_avg"].shape == (vm.n_vertices, 16)
+    assert (opt.state[vm.embeddings]["exp_avg"][:n0] != 0).all()
+
+
+# ---------------------------------------------------------------- checkpoints, memory, device
+def test_state_dict_round_trip_is_exact():
+    vm = VoxelMap(0.1, embed_dim=8, seed=3)
+    vm.allocate(_random_points(300, 9, 1.0))
+    vm.allocate(_random_points(300, 10, 1.0) + 1.5)
+    sd = vm.state_dict()
+    vm2 = VoxelMap.from_state_dict(sd)
+    assert vm2.voxel_size_m == 0.1 and vm2.embed_dim == 8
+    for name in ("voxel_codes", "voxel_coords", "voxel_vertex_ids", "vertex_codes", "embeddings"):
+        assert torch.equal(getattr(vm2, name), getattr(vm, name)), name
+    q = _random_points(500, 11, 2.5)
+    assert torch.equal(vm2.lookup_voxels(q), vm.lookup_voxels(q))
+    # loading continues to allocate consistently
+    p = _random_points(100, 12, 1.0) - 3.0
+    assert vm2.allocate(p) == vm.allocate(p)
+    assert torch.equal(vm2.voxel_vertex_ids, vm.voxel_vertex_ids)
+    assert torch.equal(vm2.embeddings, vm.embeddings)  # the seeded generator's state travels too
+    bad = dict(sd, voxel_vertex_ids=sd["voxel_vertex_ids"][:-1])
+    with pytest.raises(ShapeError):
+        VoxelMap.from_state_dict(bad)
+    with pytest.raises(ValidationError):
+        VoxelMap.from_state_dict({k: v for k, v in sd.items() if k != "embeddings"})
+
+
+def test_memory_report_and_device_move():
+    vm = VoxelMap(0.2, seed=0)
+    vm.allocate(_random_points(100, 13, 0.5))
+    dec = torch.nn.Linear(16, 4)
+    rep = vm.memory_report(dec)
+    assert rep.n_voxels == vm.n_voxels and rep.n_vertices == vm.n_vertices
+    assert rep.embedding_bytes == vm.n_vertices * 16 * 4
+    assert rep.decoder_bytes == (16 * 4 + 4) * 4
+    assert rep.total_bytes == rep.embedding_bytes + rep.index_bytes + rep.decoder_bytes
+    assert vm.to("cpu") is vm and vm.device.type == "cpu"
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_map_matches_cpu_map():
+    pts = _random_points(1000, 14, 2.0)
+    cpu, gpu = VoxelMap(0.2, seed=1), VoxelMap(0.2, seed=1, device="cuda")
+    cpu.allocate(pts)
+    gpu.allocate(pts.cuda())
+    assert torch.equal(gpu.voxel_codes.cpu(), cpu.voxel_codes)
+    assert torch.equal(gpu.embeddings.detach().cpu(), cpu.embeddings.detach())
+    assert torch.equal(gpu.lookup_voxels(pts.cuda()).cpu(), cpu.lookup_voxels(pts))
+    moved = VoxelMap.from_state_dict(cpu.state_dict()).to("cuda")
+    assert torch.equal(moved.lookup_voxels(pts.cuda()).cpu(), cpu.lookup_voxels(pts))
