@@ -26,6 +26,7 @@ import torch
 from .errors import ConfigError, ValidationError
 from .field import FieldConfig, SDFDecoder, query
 from .framedata import FrameData, sample_pixels
+from .lie import perturb_right
 from .losses import LossConfig, LossTerms, compute_losses
 from .mesh import extract_mesh
 from .render import RenderConfig, camera_rays, render_rays
@@ -63,6 +64,10 @@ class MappingConfig:
     """Drop pixels whose confidence (0/1/2) is below this, when the frame has a confidence map."""
     alloc_stride: int = 1
     """Back-project every ``alloc_stride``-th pixel (per axis) for allocation."""
+    optimize_poses: bool = True
+    """Jointly refine the window's camera poses (the first keyframe stays fixed). Off for known poses."""
+    lr_pose: float = 1e-3
+    """Adam learning rate of the pose corrections (6-vectors, metres / radians)."""
 
     def __post_init__(self) -> None:
         for name in ("rays_per_frame", "iters", "keyframe_max_interval", "map_every", "alloc_stride"):
@@ -77,10 +82,30 @@ class MappingConfig:
 
 @dataclass
 class Keyframe:
-    """A frame kept for joint optimisation: its observations and its camera-to-world pose ``[4, 4]``."""
+    """A frame kept for joint optimisation.
+
+    Its pose is ``T_base @ exp(delta)`` (right perturbation, :mod:`.lie`): ``T_base`` ``[4, 4]`` float64
+    camera-to-world as tracked, ``delta`` a trainable 6-vector refined by joint mapping.
+    """
 
     data: FrameData
-    T_world_cam: torch.Tensor
+    T_base: torch.Tensor
+    delta: torch.nn.Parameter
+    fixed: bool = False
+
+    @classmethod
+    def create(cls, data: FrameData, T_world_cam: torch.Tensor, fixed: bool = False) -> Keyframe:
+        delta = torch.nn.Parameter(torch.zeros(6, dtype=torch.float64, device=T_world_cam.device))
+        return cls(data, T_world_cam.detach().to(torch.float64), delta, fixed)
+
+    def pose(self) -> torch.Tensor:
+        """Current camera-to-world pose ``[4, 4]`` (differentiable in ``delta``)."""
+        return perturb_right(self.T_base, self.delta)
+
+    @property
+    def T_world_cam(self) -> torch.Tensor:
+        """Current pose, detached."""
+        return self.pose().detach()
 
 
 @dataclass(frozen=True)
@@ -135,6 +160,8 @@ class Mapper:
         self._rng = random.Random(seed)
         self._frames_since_keyframe = 0
         self._n_integrated = 0
+        self.last_frame_pose: torch.Tensor | None = None
+        """Pose of the most recently integrated frame after its mapping round (refined if enabled)."""
         self.version = 0
         """Bumped after every optimisation round (cache key for meshes and renders)."""
 
@@ -144,6 +171,30 @@ class Mapper:
             {"params": [self.voxels.embeddings], "lr": self.config.lr_embeddings},
             {"params": list(self.decoder.parameters()), "lr": self.config.lr_decoder},
         ])
+        self.pose_optimizer: torch.optim.Adam | None = None
+
+    def _pose_optimizer(self, window: list[Keyframe]) -> torch.optim.Adam | None:
+        """Adam over the pose corrections of the non-fixed frames in ``window`` (state kept per frame)."""
+        if not self.config.optimize_poses:
+            return None
+        params = [kf.delta for kf in window if not kf.fixed]
+        if not params:
+            return None
+        if self.pose_optimizer is None:
+            self.pose_optimizer = torch.optim.Adam(params, lr=self.config.lr_pose)
+        known = {id(p) for g in self.pose_optimizer.param_groups for p in g["params"]}
+        for p in params:
+            if id(p) not in known:
+                self.pose_optimizer.add_param_group({"params": [p], "lr": self.config.lr_pose})
+        return self.pose_optimizer
+
+    def _forget_pose(self, kf: Keyframe) -> None:
+        """Drop a non-keyframe's temporary pose correction from the pose optimiser."""
+        opt = self.pose_optimizer
+        if opt is None:
+            return
+        opt.param_groups = [g for g in opt.param_groups if not any(p is kf.delta for p in g["params"])]
+        opt.state.pop(kf.delta, None)
 
     # ------------------------------------------------------------------ fusion
     def integrate(self, frame: FrameData, T_world_cam: torch.Tensor | np.ndarray) -> MappingStep:
@@ -159,7 +210,7 @@ class Mapper:
         is_kf = (first or self._frames_since_keyframe + 1 >= self.config.keyframe_max_interval
                  or n_new > self.config.keyframe_ratio * max(n_obs, 1))
         self.voxels.allocate(points, self.optimizer)
-        current = Keyframe(frame, T)
+        current = Keyframe.create(frame, T, fixed=first)
         if is_kf:
             self.keyframes.append(current)
             self._frames_since_keyframe = 0
@@ -173,7 +224,10 @@ class Mapper:
             iters = self.config.iters
         if iters:
             loss = self.optimize(iters, newest=current)
+        if not is_kf:
+            self._forget_pose(current)
         self._n_integrated += 1
+        self.last_frame_pose = current.T_world_cam
         return MappingStep(frame.index, is_kf, n_new, n_obs, iters, loss, (time.perf_counter() - t0) * 1e3)
 
     def optimize(self, iters: int, newest: Keyframe | None = None) -> float:
@@ -198,10 +252,12 @@ class Mapper:
 
     def step(self, window: list[Keyframe]) -> LossTerms:
         """One optimisation iteration over ``window`` (``rays_per_frame`` rays per frame)."""
+        pose_opt = self._pose_optimizer(window)
         origins, dirs, depth, color = [], [], [], []
         for kf in window:
             px = sample_pixels(kf.data, self.config.rays_per_frame, self.generator)
-            o, d = camera_rays(kf.data.K, kf.T_world_cam, px.uv)
+            T = kf.pose() if pose_opt is not None and not kf.fixed else kf.T_world_cam
+            o, d = camera_rays(kf.data.K, T, px.uv)
             origins.append(o)
             dirs.append(d)
             depth.append(px.depth_m)
@@ -216,8 +272,12 @@ class Mapper:
         terms = compute_losses(out, depth_gt, color_gt if self.field_config.use_color else None,
                                self.loss_config)
         self.optimizer.zero_grad(set_to_none=True)
+        if pose_opt is not None:
+            pose_opt.zero_grad(set_to_none=True)
         terms.total.backward()
         self.optimizer.step()
+        if pose_opt is not None:
+            pose_opt.step()
         return terms
 
     def finish(self) -> float:

@@ -35,6 +35,8 @@ class MapRunResult:
     """Outputs of :func:`map_capture`: the mapper, the mesh, the poses used, per-frame steps and timings."""
 
     mapper: Mapper
+    config: VoxFusionConfig
+    """The config actually used (known-pose mapping turns ``mapping.optimize_poses`` off)."""
     mesh: trimesh.Trimesh
     trajectory: Trajectory
     steps: list[MappingStep]
@@ -74,6 +76,8 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     Frames without a reference pose are skipped (counted in the progress bar). Raises
     ``ValidationError`` when no frame has one.
     """
+    # The poses are given: refine nothing but the map.
+    config = dataclasses.replace(config, mapping=dataclasses.replace(config.mapping, optimize_poses=False))
     torch.manual_seed(config.seed)
     n = len(capture) if max_frames is None else min(max_frames, len(capture))
     if n == 0:
@@ -112,13 +116,13 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     mesh = mapper.extract_mesh(config.mesh_res)
     mesh_s = time.perf_counter() - t1
     traj = Trajectory(np.asarray(stamps), np.stack(poses))
-    result = MapRunResult(mapper, mesh, traj, steps, wall, mesh_s, Path(out_dir) if out_dir else None)
+    result = MapRunResult(mapper, config, mesh, traj, steps, wall, mesh_s, Path(out_dir) if out_dir else None)
     if out_dir is not None:
-        write_map_outputs(result, config)
+        write_map_outputs(result)
     return result
 
 
-def write_map_outputs(result: MapRunResult, config: VoxFusionConfig) -> None:
+def write_map_outputs(result: MapRunResult) -> None:
     """mesh.ply, voxels.npz, voxels.ply, checkpoint.pt, trajectory.txt, timings.json in ``result.out_dir``."""
     out = result.out_dir
     if out is None:
@@ -128,7 +132,7 @@ def write_map_outputs(result: MapRunResult, config: VoxFusionConfig) -> None:
     export_mesh(result.mesh, out / "mesh.ply")
     export_voxels(m.voxels, out / "voxels.npz", m.decoder)
     export_voxels(m.voxels, out / "voxels.ply")
-    save_checkpoint(out / "checkpoint.pt", m, config, result.trajectory)
+    save_checkpoint(out / "checkpoint.pt", m, result.config, result.trajectory)
     write_tum_trajectory(out / "trajectory.txt", result.trajectory)
     mem = m.voxels.memory_report(m.decoder)
     write_json(out / "timings.json", {

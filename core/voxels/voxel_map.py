@@ -399,6 +399,21 @@ class VoxelMap:
         vmap.load_state_dict(state)
         return vmap
 
+    def snapshot(self) -> VoxelMap:
+        """A frozen read-only view for another thread (the tracker, a renderer).
+
+        Index tables are shared, not copied: allocation never mutates them in place, it replaces them,
+        so the snapshot keeps seeing the tables of the moment it was taken. Only the embeddings are
+        copied (``[V, D]`` floats, no gradient), because the optimiser updates those in place. Take the
+        snapshot on the thread that allocates and optimises.
+        """
+        snap = object.__new__(VoxelMap)
+        snap.__dict__.update(self.__dict__)
+        snap._former_embeddings = []
+        snap._generator = None
+        snap.embeddings = torch.nn.Parameter(self.embeddings.detach().clone(), requires_grad=False)
+        return snap
+
     def to(self, device: str | torch.device) -> VoxelMap:
         """Move every table to ``device`` (in place; returns self).
 

@@ -66,7 +66,7 @@ def register(app: typer.Typer) -> None:
         summary = result.timing_summary()
         mem = result.mapper.voxels.memory_report(result.mapper.decoder)
         write_json(out / "metrics.json", {
-            "capture": str(capture), "config": config_to_dict(cfg), "timings": summary,
+            "capture": str(capture), "config": config_to_dict(result.config), "timings": summary,
             "memory": dataclasses.asdict(mem), "mesh": metrics,
             "mesh_vertices": len(result.mesh.vertices), "mesh_faces": len(result.mesh.faces),
         })

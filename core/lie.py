@@ -1,0 +1,70 @@
+"""SE(3) exponential map in torch (differentiable), the one place poses are perturbed.
+
+Tangent vectors are ``xi = [rho (3), phi (3)]``: ``rho`` the translational part (metres), ``phi`` the
+rotation vector (radians). Perturbations are applied on the **right** (in the camera frame):
+``T_world_cam' = T_world_cam @ exp(xi)``, so ``phi`` rotates about the camera's own axes and ``rho``
+moves along them (x right, y down, z forward), and ``xi = 0`` is the identity.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .errors import ShapeError
+
+__all__ = ["skew", "so3_exp", "se3_exp", "perturb_right"]
+
+
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """``[..., 3] -> [..., 3, 3]`` cross-product matrices."""
+    z = torch.zeros_like(v[..., 0])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return torch.stack([
+        torch.stack([z, -w, y], -1),
+        torch.stack([w, z, -x], -1),
+        torch.stack([-y, x, z], -1),
+    ], -2)
+
+
+def _coefficients(theta2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``A = sin t / t``, ``B = (1 - cos t) / t^2``, ``C = (t - sin t) / t^3`` with Taylor series near 0."""
+    small = theta2 < 1e-8
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = t2.sqrt()
+    A = torch.where(small, 1 - theta2 / 6, torch.sin(t) / t)
+    B = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(t)) / t2)
+    C = torch.where(small, 1.0 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
+    return A, B, C
+
+
+def so3_exp(phi: torch.Tensor) -> torch.Tensor:
+    """Rotation vectors ``[..., 3]`` -> rotation matrices ``[..., 3, 3]`` (Rodrigues)."""
+    theta2 = (phi * phi).sum(-1)
+    A, B, _ = _coefficients(theta2)
+    K = skew(phi)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device).expand(K.shape)
+    return eye + A[..., None, None] * K + B[..., None, None] * (K @ K)
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """Tangent vectors ``[..., 6]`` (rho, phi) -> rigid transforms ``[..., 4, 4]``."""
+    if xi.shape[-1] != 6:
+        raise ShapeError("xi", tuple(xi.shape), "[..., 6]")
+    rho, phi = xi[..., :3], xi[..., 3:]
+    theta2 = (phi * phi).sum(-1)
+    A, B, C = _coefficients(theta2)
+    K = skew(phi)
+    KK = K @ K
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand(K.shape)
+    R = eye + A[..., None, None] * K + B[..., None, None] * KK
+    V = eye + B[..., None, None] * K + C[..., None, None] * KK
+    t = (V @ rho[..., None])[..., 0]
+    top = torch.cat([R, t[..., None]], -1)
+    bottom = torch.zeros(xi.shape[:-1] + (1, 4), dtype=xi.dtype, device=xi.device)
+    bottom[..., 0, 3] = 1.0
+    return torch.cat([top, bottom], -2)
+
+
+def perturb_right(T_world_cam: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
+    """``T_world_cam @ exp(xi)``: ``[..., 4, 4]`` and ``[..., 6]`` -> ``[..., 4, 4]`` (differentiable in xi)."""
+    return T_world_cam.to(xi.dtype) @ se3_exp(xi)

@@ -1,0 +1,178 @@
+"""Tracking (paper §4.2): one camera pose per frame, optimised against a frozen map snapshot.
+
+The pose is ``T_world_cam = T_prior @ exp(xi)`` with ``xi`` a 6-vector (translation, rotation vector)
+in the camera frame (right perturbation, see :mod:`.lie`), optimised with Adam through the volume
+renderer on ``rays`` pixels sampled each iteration where depth is valid (and confident).
+
+Priors (:func:`predict_pose`): constant velocity (default), the paper's zero motion, or, when frames
+carry a device pose (ARKit), the device's relative motion since the previous frame.
+
+Robustness: rays whose depth residual exceeds ``outlier_k x median`` are dropped from the depth and
+SDF terms; a frame with too few valid rays, or whose loss spikes above ``loss_spike_factor`` times the
+median of recent frames, is marked lost: its pose is the prior and it is never fused into the map.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import torch
+
+from .errors import ConfigError
+from .field import SDFDecoder
+from .framedata import FrameData, sample_pixels
+from .geometry import invert_pose
+from .lie import perturb_right
+from .losses import LossConfig, compute_losses
+from .render import RenderConfig, camera_rays, render_rays
+from .voxels import VoxelMap
+
+__all__ = ["TrackingConfig", "TrackResult", "Tracker", "predict_pose"]
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Tracking options (paper symbols in brackets)."""
+
+    rays: int = 1024
+    """[N_t] pixels sampled per iteration."""
+    iters: int = 30
+    """Maximum iterations per frame."""
+    min_iters: int = 5
+    """Iterations always run before early stopping is considered."""
+    lr: float = 5e-3
+    """Adam learning rate on the 6-vector (about metres / radians per iteration) at the first iteration."""
+    lr_final_ratio: float = 0.1
+    """The learning rate decays exponentially to ``lr * lr_final_ratio`` at the last iteration."""
+    converge_tol: float = 2e-4
+    """Stop when the pose moved less than this (m and rad) for ``patience`` consecutive iterations."""
+    patience: int = 3
+    motion_model: Literal["constant_velocity", "zero"] = "constant_velocity"
+    """Prior without a device pose: constant velocity, or the paper's zero-motion model."""
+    use_device_prior: bool = True
+    """Use the device's relative motion (e.g. ARKit) as the prior when frames carry device poses."""
+    outlier_k: float = 5.0
+    """Rays with |rendered - observed depth| > outlier_k x median residual are dropped."""
+    min_valid_fraction: float = 0.1
+    """A frame is lost when fewer than this fraction of rays hit a rendered surface."""
+    loss_spike_factor: float = 10.0
+    """A frame is lost when its loss exceeds this times the median loss of recent tracked frames."""
+    t_far_margin_m: float = 0.3
+    """Samples stop this far (camera z) behind the observed depth."""
+    loss: LossConfig = field(default_factory=LossConfig)
+    """Loss weights used for tracking."""
+
+    def __post_init__(self) -> None:
+        for name in ("rays", "iters", "patience"):
+            if getattr(self, name) < 1:
+                raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
+        if not self.lr > 0:
+            raise ConfigError("lr", f"must be > 0, got {self.lr}")
+        if not 0 <= self.min_valid_fraction < 1:
+            raise ConfigError("min_valid_fraction", "must be in [0, 1)")
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """Outcome of tracking one frame. ``T_world_cam`` and ``T_prior`` are ``[4, 4]`` float64."""
+
+    frame_index: int
+    timestamp_s: float
+    T_world_cam: np.ndarray
+    T_prior: np.ndarray
+    loss: float
+    iterations: int
+    valid_rays: int
+    lost: bool
+    reason: str
+    time_ms: float
+
+
+def predict_pose(T_prev: np.ndarray, T_prev2: np.ndarray | None, config: TrackingConfig,
+                 device_prev: np.ndarray | None = None, device_cur: np.ndarray | None = None) -> np.ndarray:
+    """Prior pose of the next frame from the last tracked poses (and device poses, if any)."""
+    if config.use_device_prior and device_prev is not None and device_cur is not None:
+        return T_prev @ (invert_pose(device_prev) @ device_cur)
+    if config.motion_model == "constant_velocity" and T_prev2 is not None:
+        return T_prev @ (invert_pose(T_prev2) @ T_prev)
+    return T_prev.copy()
+
+
+class Tracker:
+    """Tracks frames against the newest published map snapshot (``set_map``)."""
+
+    def __init__(self, config: TrackingConfig, render: RenderConfig, use_color: bool, seed: int = 0) -> None:
+        self.config = config
+        self.render_config = render
+        self.use_color = use_color
+        self.generator = torch.Generator().manual_seed(seed + 1)
+        self.voxels: VoxelMap | None = None
+        self.decoder: SDFDecoder | None = None
+        self._recent_losses: deque[float] = deque(maxlen=20)
+
+    def set_map(self, voxels: VoxelMap, decoder: SDFDecoder) -> None:
+        """Swap in a new frozen map snapshot (a reference assignment; the tracker never waits)."""
+        self.voxels, self.decoder = voxels, decoder
+
+    def track(self, frame: FrameData, T_prior: np.ndarray) -> TrackResult:
+        """Optimise the pose of ``frame`` starting from ``T_prior``."""
+        t0 = time.perf_counter()
+        cfg = self.config
+        voxels, decoder = self.voxels, self.decoder
+        if voxels is None or decoder is None:
+            raise ConfigError("map", "tracker has no map snapshot yet (the first frame initialises the map)")
+        dev = voxels.device
+        T0 = torch.as_tensor(T_prior, dtype=torch.float64, device=dev)
+        xi = torch.zeros(6, dtype=torch.float64, device=dev, requires_grad=True)
+        opt = torch.optim.Adam([xi], lr=cfg.lr)
+        still = 0
+        loss_val, valid, it = float("nan"), 0, 0
+        decay = cfg.lr_final_ratio ** (1.0 / max(cfg.iters - 1, 1))
+        for it in range(1, cfg.iters + 1):
+            for group in opt.param_groups:
+                group["lr"] = cfg.lr * decay ** (it - 1)
+            px = sample_pixels(frame, cfg.rays, self.generator)
+            T = perturb_right(T0, xi)
+            o, d = camera_rays(frame.K, T, px.uv)
+            out = render_rays(voxels, decoder, o, d, self.render_config, training=False,
+                              t_far=px.depth_m + cfg.t_far_margin_m)
+            with torch.no_grad():
+                ok = out.hit & out.surface
+                resid = (out.depth.detach() - px.depth_m).abs()
+                med = resid[ok].median() if ok.any() else resid.new_tensor(0.0)
+                inlier = ok & (resid <= cfg.outlier_k * med.clamp(min=1e-3))
+            valid = int(inlier.sum())
+            if valid < max(8, cfg.min_valid_fraction * cfg.rays):
+                break
+            depth_gt = torch.where(inlier, px.depth_m, torch.zeros_like(px.depth_m))
+            color_gt = px.color if self.use_color else None
+            terms = compute_losses(out, depth_gt, color_gt, cfg.loss)
+            opt.zero_grad(set_to_none=True)
+            terms.total.backward()
+            before = xi.detach().clone()
+            opt.step()
+            loss_val = float(terms.total.detach())
+            step = (xi.detach() - before).abs()
+            still = still + 1 if float(step.max()) < cfg.converge_tol else 0
+            if it >= cfg.min_iters and still >= cfg.patience:
+                break
+        with torch.no_grad():
+            T_est = perturb_right(T0, xi).cpu().numpy()
+        lost, reason = False, ""
+        if valid < max(8, cfg.min_valid_fraction * cfg.rays):
+            lost, reason = True, f"too few valid rays ({valid} of {cfg.rays})"
+        elif not np.isfinite(loss_val) or not np.all(np.isfinite(T_est)):
+            lost, reason = True, "non-finite loss or pose"
+        elif len(self._recent_losses) >= 5 and loss_val > cfg.loss_spike_factor * float(
+                np.median(self._recent_losses)):
+            lost, reason = True, f"loss spike ({loss_val:.4g} vs median {np.median(self._recent_losses):.4g})"
+        if lost:
+            T_est = np.asarray(T_prior, dtype=np.float64).copy()
+        else:
+            self._recent_losses.append(loss_val)
+        return TrackResult(frame.index, frame.timestamp_s, T_est, np.asarray(T_prior, dtype=np.float64), loss_val,
+                           it, valid, lost, reason, (time.perf_counter() - t0) * 1e3)
