@@ -171,7 +171,8 @@ def interpolate(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torc
         local_xyz = local_coords(voxel_map, points_world, voxel_idx)
     emb = voxel_map.embeddings
     corner_ids = voxel_map.voxel_vertex_ids[voxel_idx]  # [K, 8]
-    corners = emb[corner_ids]  # [K, 8, D]
+    # embedding() rather than emb[ids]: its CPU backward accumulates in a fixed order (reproducible runs)
+    corners = torch.nn.functional.embedding(corner_ids, emb)  # [K, 8, D]
     off = CORNER_OFFSETS.to(local_xyz.device, local_xyz.dtype)  # [8, 3]
     x = local_xyz[:, None, :]
     w = (off * x + (1.0 - off) * (1.0 - x)).prod(-1)  # [K, 8]

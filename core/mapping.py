@@ -197,8 +197,13 @@ class Mapper:
         opt.state.pop(kf.delta, None)
 
     # ------------------------------------------------------------------ fusion
-    def integrate(self, frame: FrameData, T_world_cam: torch.Tensor | np.ndarray) -> MappingStep:
-        """Fuse one frame with its camera-to-world pose ``[4, 4]`` (OpenCV axes, metres)."""
+    def integrate(self, frame: FrameData, T_world_cam: torch.Tensor | np.ndarray,
+                  optimize: bool = True) -> MappingStep:
+        """Fuse one frame with its camera-to-world pose ``[4, 4]`` (OpenCV axes, metres).
+
+        ``optimize=False`` only allocates voxels and applies the keyframe test (a realtime mapper that
+        fell behind does this for the frames it skips, so no geometry or keyframe is lost).
+        """
         t0 = time.perf_counter()
         T = torch.as_tensor(np.asarray(T_world_cam) if not isinstance(T_world_cam, torch.Tensor)
                             else T_world_cam, dtype=torch.float64, device=self.device).detach()
@@ -220,7 +225,7 @@ class Mapper:
         loss = float("nan")
         if first:
             iters = self.config.first_frame_iters
-        elif is_kf or self._n_integrated % self.config.map_every == 0:
+        elif optimize and (is_kf or self._n_integrated % self.config.map_every == 0):
             iters = self.config.iters
         if iters:
             loss = self.optimize(iters, newest=current)

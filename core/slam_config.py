@@ -19,6 +19,7 @@ from .field import FieldConfig
 from .losses import LossConfig
 from .mapping import MappingConfig
 from .render import RenderConfig
+from .tracking import TrackingConfig
 
 __all__ = ["VoxFusionConfig", "CONFIG_DIR", "preset_path", "load_preset", "resolve_device"]
 
@@ -38,10 +39,18 @@ class VoxFusionConfig:
     """Seeds ray sampling, keyframe windows and embedding initialisation (reproducible on CPU)."""
     mesh_res: int = 8
     """Marching-cubes samples per voxel edge for mesh extraction."""
+    mode: Literal["offline", "realtime"] = "offline"
+    """``offline``: every frame tracked, mapping interleaved deterministically (reproducible on CPU).
+    ``realtime``: tracking and mapping run concurrently; the tracker takes the newest frame and drops
+    what it cannot keep up with (counted)."""
+    first_pose: Literal["reference", "device", "identity"] = "reference"
+    """Pose of the first frame: its reference pose (so trajectories live in the ground-truth frame), else
+    its device pose, else identity; ``device`` skips the reference, ``identity`` always starts at I."""
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
     mapping: MappingConfig = dataclasses.field(default_factory=MappingConfig)
+    tracking: TrackingConfig = dataclasses.field(default_factory=TrackingConfig)
 
     def __post_init__(self) -> None:
         if not self.voxel_size_m > 0:

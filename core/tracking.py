@@ -44,7 +44,7 @@ class TrackingConfig:
     """Maximum iterations per frame."""
     min_iters: int = 5
     """Iterations always run before early stopping is considered."""
-    lr: float = 5e-3
+    lr: float = 1e-2
     """Adam learning rate on the 6-vector (about metres / radians per iteration) at the first iteration."""
     lr_final_ratio: float = 0.1
     """The learning rate decays exponentially to ``lr * lr_final_ratio`` at the last iteration."""

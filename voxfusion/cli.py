@@ -21,6 +21,7 @@ _COMMAND_MODULES = (
     "voxfusion.commands.synth",
     "voxfusion.commands.eval",
     "voxfusion.commands.map",
+    "voxfusion.commands.run",
 )
 
 for _name in _COMMAND_MODULES:

@@ -1,0 +1,192 @@
+"""``voxfusion run`` as a library call: full SLAM over a recorded capture, with every output on disk.
+
+Outputs in the run folder: ``trajectory.txt`` (TUM), ``keyframes.json``, ``mesh.ply``, ``voxels.npz``,
+``voxels.ply``, ``checkpoint.pt``, ``metrics.json`` (ATE when the capture has reference poses, mesh
+accuracy / completion when it has a GT mesh, timings, peak memory) and ``frames.json`` (per-frame
+tracking / mapping times, losses, iterations, lost flags).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import resource
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from tqdm import tqdm
+
+from .checkpoint import save_checkpoint
+from .config import config_to_dict
+from .datasets.frame import Capture
+from .errors import ValidationError
+from .eval.mesh import MeshEvalConfig, compute_mesh_metrics, load_mesh, views_from_frames
+from .eval.report import write_json
+from .eval.trajectory import TrajectoryEvalConfig, compute_ate
+from .mesh import export_mesh
+from .slam import SlamStats, SlamSystem
+from .slam_config import VoxFusionConfig
+from .trajectory import Trajectory, write_tum_trajectory
+from .voxel_export import export_voxels
+
+__all__ = ["RunResult", "run_capture", "reference_trajectory", "evaluate_run", "peak_memory_mb"]
+
+
+@dataclass
+class RunResult:
+    """What :func:`run_capture` produced."""
+
+    slam: SlamSystem
+    trajectory: Trajectory
+    mesh: trimesh.Trimesh
+    stats: SlamStats
+    wall_s: float
+    metrics: dict
+    out_dir: Path | None
+
+
+def peak_memory_mb(device: torch.device) -> dict[str, float]:
+    """Peak resident memory of this process (MB, from getrusage) and peak CUDA allocation if on CUDA."""
+    out = {"peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+    if device.type == "cuda":
+        out["peak_cuda_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+    return out
+
+
+def reference_trajectory(capture: Capture, frames: int, step: int = 1) -> Trajectory | None:
+    """The capture's reference poses over its first ``frames`` frames (None when it has none)."""
+    stamps, poses = [], []
+    for f in capture.frames(0, frames, step):
+        if f.T_world_cam is not None:
+            stamps.append(f.timestamp_s)
+            poses.append(f.T_world_cam)
+    if len(poses) < 3:
+        return None
+    return Trajectory(np.asarray(stamps), np.stack(poses))
+
+
+def evaluate_run(trajectory: Trajectory, mesh: trimesh.Trimesh, capture: Capture, frames: int,
+                 mesh_samples: int = 200_000) -> dict:
+    """ATE (aligned and anchored at the first frame) and mesh metrics (whole GT and observed part)."""
+    metrics: dict = {}
+    ref = reference_trajectory(capture, frames)
+    if ref is not None and len(trajectory) >= 3:
+        for align in ("se3", "none"):
+            ate = compute_ate(trajectory, ref, TrajectoryEvalConfig(align=align, max_diff_s=1e-3))
+            metrics[f"ate_{align}"] = ate.summary()
+    gt = getattr(capture, "gt_mesh", None)
+    if gt is None and capture.gt_mesh_path is not None:
+        gt = load_mesh(capture.gt_mesh_path)
+    if gt is not None and len(mesh.faces):
+        cfg = MeshEvalConfig(n_samples=mesh_samples)
+        step = max(1, frames // 200)
+        views = views_from_frames(list(capture.frames(0, frames, step)))
+        metrics["mesh_full"] = compute_mesh_metrics(mesh, gt, cfg)
+        metrics["mesh_observed"] = compute_mesh_metrics(mesh, gt, cfg, views=views)
+    return metrics
+
+
+def run_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path | None = None,
+                max_frames: int | None = None, progress: bool = True, speed: float = 1.0,
+                evaluate: bool = True) -> RunResult:
+    """Run SLAM over ``capture`` and (with ``out_dir``) write every output.
+
+    In ``realtime`` mode frames are submitted at ``speed`` times their recorded rate, so frames the
+    tracker cannot keep up with are dropped, as they would be live; ``offline`` processes every frame.
+    """
+    n = len(capture) if max_frames is None else min(max_frames, len(capture))
+    if n == 0:
+        raise ValidationError("capture", f"{capture.name} has no frames")
+    torch.manual_seed(config.seed)
+    slam = SlamSystem(config)
+    bar = tqdm(total=n, desc=f"run {capture.name}", unit="frame", disable=not progress, dynamic_ncols=True)
+    t0 = time.perf_counter()
+    t_first: float | None = None
+    for frame in capture.frames(0, n):
+        if config.mode == "offline":
+            rec = slam.process(frame)
+        else:
+            if t_first is None:
+                t_first = frame.timestamp_s
+            wait = (frame.timestamp_s - t_first) / speed - (time.perf_counter() - t0)
+            if wait > 0:
+                time.sleep(wait)
+            slam.submit(frame)
+            rec = slam.latest()
+        st = slam.stats()
+        if rec is not None:
+            loss = rec.tracking.loss if rec.tracking else float("nan")
+            bar.set_postfix(frame=rec.index, fps=f"{st.fps:.2f}", loss=f"{loss:.3f}", kf=st.keyframes,
+                            lost=st.frames_lost, dropped=st.frames_dropped)
+        bar.update(1)
+    slam.finish()
+    bar.close()
+    wall = time.perf_counter() - t0
+    traj = slam.trajectory()
+    mesh = slam.mesh()
+    stats = slam.stats()
+    metrics = evaluate_run(traj, mesh, capture, n) if evaluate else {}
+    result = RunResult(slam, traj, mesh, stats, wall, metrics, Path(out_dir) if out_dir else None)
+    if out_dir is not None:
+        write_run_outputs(result, capture, n)
+    return result
+
+
+def _frame_rows(slam: SlamSystem) -> list[dict]:
+    rows = []
+    for r in slam.records:
+        t, m = r.tracking, r.mapping
+        rows.append({
+            "index": r.index, "timestamp_s": r.timestamp_s, "lost": r.lost, "keyframe": r.keyframe is not None,
+            "tracking_ms": t.time_ms if t else None, "tracking_iters": t.iterations if t else 0,
+            "tracking_loss": t.loss if t else None, "valid_rays": t.valid_rays if t else None,
+            "lost_reason": t.reason if t else "",
+            "mapping_ms": m.time_ms if m else None, "mapping_iters": m.iterations if m else 0,
+            "mapping_loss": m.loss if m else None,
+        })
+    return rows
+
+
+def timing_summary(slam: SlamSystem, wall_s: float) -> dict:
+    """Frames per second and ms per tracking / mapping iteration over a run."""
+    rows = _frame_rows(slam)
+    t_ms = sum(r["tracking_ms"] or 0.0 for r in rows)
+    t_it = sum(r["tracking_iters"] for r in rows)
+    m_ms = sum(r["mapping_ms"] or 0.0 for r in rows)
+    m_it = sum(r["mapping_iters"] for r in rows)
+    return {
+        "wall_s": wall_s, "fps": len(rows) / wall_s if wall_s > 0 else None,
+        "tracking_ms_per_frame": t_ms / max(1, sum(1 for r in rows if r["tracking_iters"])),
+        "tracking_ms_per_iter": t_ms / t_it if t_it else None,
+        "mapping_ms_per_iter": m_ms / m_it if m_it else None,
+        "tracking_iters": t_it, "mapping_iters": m_it,
+    }
+
+
+def write_run_outputs(result: RunResult, capture: Capture, frames: int) -> None:
+    """Write trajectory, keyframes, mesh, voxels, checkpoint, metrics and per-frame timings."""
+    out = result.out_dir
+    if out is None:
+        raise ValidationError("out_dir", "no output folder given")
+    out.mkdir(parents=True, exist_ok=True)
+    slam = result.slam
+    mapper = slam.mapper
+    write_tum_trajectory(out / "trajectory.txt", result.trajectory)
+    write_json(out / "keyframes.json", [
+        {"index": kf.data.index, "timestamp_s": kf.data.timestamp_s, "T_world_cam": kf.T_world_cam.cpu().numpy()}
+        for kf in mapper.keyframes])
+    export_mesh(result.mesh, out / "mesh.ply")
+    export_voxels(mapper.voxels, out / "voxels.npz", mapper.decoder)
+    export_voxels(mapper.voxels, out / "voxels.ply")
+    save_checkpoint(out / "checkpoint.pt", mapper, slam.config, result.trajectory)
+    write_json(out / "frames.json", _frame_rows(slam))
+    mem = mapper.voxels.memory_report(mapper.decoder)
+    write_json(out / "metrics.json", {
+        "capture": str(capture.path), "frames": frames, "config": config_to_dict(slam.config),
+        "stats": dataclasses.asdict(result.stats), "timings": timing_summary(slam, result.wall_s),
+        "memory": {**dataclasses.asdict(mem), **peak_memory_mb(slam.device)},
+        **result.metrics,
+    })

@@ -1,0 +1,436 @@
+"""The engine's front door: Vox-Fusion SLAM over a stream of frames (paper §4).
+
+:class:`SlamSystem` owns a :class:`~.tracking.Tracker` and a :class:`~.mapping.Mapper` and runs them in
+one of two modes (``VoxFusionConfig.mode``):
+
+* ``offline`` - :meth:`SlamSystem.process` tracks a frame against the current map snapshot and then
+  maps it, on the caller's thread. Deterministic: a fixed seed reproduces the run exactly on CPU.
+* ``realtime`` - :meth:`SlamSystem.submit` hands frames to a **tracking worker** thread, which always
+  takes the newest frame (older untracked ones are dropped and counted) and passes tracked frames to a
+  **mapping worker** thread. The mapper fuses every tracked frame (allocation + keyframe test), runs
+  its optimisation round on the newest one, and then publishes a map snapshot that the tracker picks up
+  by a reference swap (index tables shared, embeddings and decoder copied once per round; see
+  :meth:`~.voxels.VoxelMap.snapshot`). The tracker never waits for mapping except for the very first
+  frame, which initialises the map. On CUDA each worker runs on its own stream.
+
+Poses are camera-to-world ``[4, 4]`` float64, OpenCV axes, metres. Keyframe poses refined by mapping
+flow back into the trajectory; other frames follow their reference keyframe (the newest keyframe when
+they were tracked) rigidly.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import trimesh
+
+from .datasets.frame import RGBDFrame
+from .errors import ValidationError, VoxFusionError
+from .field import SDFDecoder
+from .framedata import FrameData, frame_to_device
+from .geometry import invert_pose
+from .mapping import Keyframe, Mapper, MappingStep
+from .mesh import extract_mesh
+from .render import RenderedImage, render_depth_image
+from .slam_config import VoxFusionConfig, resolve_device
+from .tracking import Tracker, TrackResult, predict_pose
+from .trajectory import Trajectory
+from .voxels import VoxelMap
+
+__all__ = ["SlamError", "FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem"]
+
+
+class SlamError(VoxFusionError):
+    """A worker failed; the message carries the original error."""
+
+
+@dataclass
+class FrameRecord:
+    """One tracked frame of the trajectory.
+
+    ``T_tracked`` is the pose tracking produced (or the prior, when lost). ``ref_keyframe`` and
+    ``T_ref_frame`` (``T_keyframe^-1 @ T_tracked``) let the frame follow its keyframe's refinements.
+    """
+
+    index: int
+    timestamp_s: float
+    T_tracked: np.ndarray
+    lost: bool = False
+    is_keyframe: bool = False
+    keyframe: Keyframe | None = None
+    ref_keyframe: Keyframe | None = None
+    T_ref_frame: np.ndarray | None = None
+    tracking: TrackResult | None = None
+    mapping: MappingStep | None = None
+    received_at: float = 0.0
+    tracked_at: float = 0.0
+    data: FrameData | None = dataclasses.field(default=None, repr=False)
+    """The frame's observations while it waits for the mapper (released once mapped)."""
+
+    def current_pose(self) -> np.ndarray:
+        """Pose with the newest keyframe refinements applied."""
+        if self.keyframe is not None:
+            return self.keyframe.T_world_cam.cpu().numpy()
+        if self.ref_keyframe is not None and self.T_ref_frame is not None:
+            return self.ref_keyframe.T_world_cam.cpu().numpy() @ self.T_ref_frame
+        return self.T_tracked
+
+
+@dataclass(frozen=True)
+class SlamStats:
+    """Counters of a run. Latency is from :meth:`SlamSystem.submit`/``process`` to a tracked pose."""
+
+    frames_received: int
+    frames_tracked: int
+    frames_mapped: int
+    frames_dropped: int
+    frames_lost: int
+    keyframes: int
+    voxels: int
+    fps: float
+    latency_ms: float
+    map_version: int
+
+
+@dataclass(frozen=True)
+class MapSnapshot:
+    """A frozen map for readers on other threads: voxels (shared index, copied embeddings) + decoder."""
+
+    voxels: VoxelMap
+    decoder: SDFDecoder
+    version: int
+
+
+class SlamSystem:
+    """Vox-Fusion SLAM over a stream of :class:`RGBDFrame` (see the module docstring).
+
+    Args:
+        config: the run's configuration (``config.mode`` picks offline or realtime).
+        use_color: train the colour head; None decides from the first frame (depth-only -> False).
+        on_pose: called with every new :class:`FrameRecord` right after tracking (from the tracking
+            thread in realtime mode); keep it fast.
+    """
+
+    def __init__(self, config: VoxFusionConfig, use_color: bool | None = None,
+                 on_pose: Callable[[FrameRecord], None] | None = None) -> None:
+        self.config = config
+        self.device = resolve_device(config.device)
+        self._use_color = use_color
+        self.on_pose = on_pose
+        self.mapper: Mapper | None = None
+        self.tracker: Tracker | None = None
+        self.records: list[FrameRecord] = []
+        self._snapshot: MapSnapshot | None = None
+        self._mesh_cache: tuple[int, trimesh.Trimesh] | None = None
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
+        self._pending: deque[tuple[RGBDFrame, float]] = deque()
+        self._to_map: deque[FrameRecord] = deque()
+        self._received = self._dropped = self._mapped = 0
+        self._tracking_busy = self._mapping_busy = False
+        self._closing = False
+        self._threads: list[threading.Thread] = []
+        self.error: BaseException | None = None
+        self._t_start: float | None = None
+        self._latencies: deque[float] = deque(maxlen=100)
+        self._streams: dict[str, torch.cuda.Stream] = {}
+        self._device_poses: dict[int, np.ndarray] = {}
+
+    # ------------------------------------------------------------------ shared helpers
+    def _init_engine(self, frame: RGBDFrame) -> None:
+        use_color = self._use_color if self._use_color is not None else frame.color is not None
+        self._use_color = use_color
+        field_cfg = self.config.field if use_color else dataclasses.replace(self.config.field, use_color=False)
+        self.mapper = Mapper(self.config.voxel_size_m, field_cfg, self.config.render, self.config.loss,
+                             self.config.mapping, device=self.device, seed=self.config.seed)
+        self.tracker = Tracker(self.config.tracking, self.config.render, use_color, seed=self.config.seed)
+
+    def _to_device(self, frame: RGBDFrame) -> FrameData:
+        m = self.config.mapping
+        return frame_to_device(frame, self.device, m.min_depth_m, m.max_depth_m, m.min_confidence,
+                               use_color=bool(self._use_color))
+
+    def _first_pose(self, frame: RGBDFrame) -> np.ndarray:
+        choice = self.config.first_pose
+        if choice == "reference" and frame.T_world_cam is not None:
+            return frame.T_world_cam.copy()
+        if choice in ("reference", "device") and frame.T_world_cam_device is not None:
+            return frame.T_world_cam_device.copy()
+        return np.eye(4)
+
+    def _prior(self, frame: RGBDFrame) -> np.ndarray:
+        good = [r for r in self.records[-8:] if not r.lost]
+        if not good:
+            return self._first_pose(frame)
+        prev = good[-1]
+        prev2 = good[-2] if len(good) > 1 else None
+        dev_prev = self._device_pose_of(prev.index)
+        return predict_pose(prev.current_pose(), None if prev2 is None else prev2.current_pose(),
+                            self.config.tracking, dev_prev, frame.T_world_cam_device)
+
+    def _device_pose_of(self, index: int) -> np.ndarray | None:
+        return self._device_poses.get(index)
+
+    def _publish(self) -> None:
+        """Swap in a new frozen snapshot of the map for the tracker and for readers."""
+        m = self.mapper
+        if m is None:
+            return
+        stream = self._streams.get("mapping")
+        voxels = m.voxels.snapshot()
+        decoder = copy.deepcopy(m.decoder).requires_grad_(False)
+        if stream is not None:
+            stream.synchronize()
+        snap = MapSnapshot(voxels, decoder, m.version)
+        with self._lock:
+            self._snapshot = snap
+        if self.tracker is not None:
+            self.tracker.set_map(snap.voxels, snap.decoder)
+
+    def _track(self, frame: RGBDFrame, received_at: float) -> FrameRecord:
+        """Track one frame (or place the first one) and record it; ``record.data`` holds its tensors."""
+        if frame.T_world_cam_device is not None:
+            self._device_poses[frame.index] = frame.T_world_cam_device
+        if self.mapper is None:
+            self._init_engine(frame)
+        data = self._to_device(frame)
+        if not self.records:
+            T = self._first_pose(frame)
+            rec = FrameRecord(frame.index, frame.timestamp_s, T, received_at=received_at)
+        else:
+            prior = self._prior(frame)
+            if data.n_valid == 0:
+                res = None
+                rec = FrameRecord(frame.index, frame.timestamp_s, prior, lost=True, received_at=received_at)
+            else:
+                res = self.tracker.track(data, prior)
+                rec = FrameRecord(frame.index, frame.timestamp_s, res.T_world_cam, lost=res.lost, tracking=res,
+                                  received_at=received_at)
+        rec.data = None if rec.lost else data
+        kfs = self.mapper.keyframes
+        if kfs and not rec.lost:
+            ref = kfs[-1]
+            rec.ref_keyframe = ref
+            rec.T_ref_frame = invert_pose(ref.T_world_cam.cpu().numpy()) @ rec.T_tracked
+        rec.tracked_at = time.perf_counter()
+        self._latencies.append((rec.tracked_at - received_at) * 1e3)
+        with self._lock:
+            self.records.append(rec)
+        if self.on_pose is not None:
+            self.on_pose(rec)
+        return rec
+
+    def _map(self, rec: FrameRecord, optimize: bool = True) -> None:
+        step = self.mapper.integrate(rec.data, rec.T_tracked, optimize=optimize)
+        rec.data = None
+        rec.mapping = step
+        if step.is_keyframe:
+            rec.keyframe = self.mapper.keyframes[-1]
+            rec.ref_keyframe, rec.T_ref_frame = None, None
+        with self._lock:
+            self._mapped += 1
+
+    # ------------------------------------------------------------------ offline mode
+    def process(self, frame: RGBDFrame) -> FrameRecord:
+        """Offline mode: track ``frame`` and map it (unless lost) before returning its record."""
+        if self.config.mode != "offline":
+            raise ValidationError("mode", "process() is for offline mode; use submit() in realtime mode")
+        t = time.perf_counter()
+        if self._t_start is None:
+            self._t_start = t
+        with self._lock:
+            self._received += 1
+        rec = self._track(frame, t)
+        if not rec.lost:
+            self._map(rec)
+            self._publish()
+        return rec
+
+    # ------------------------------------------------------------------ realtime mode
+    def start(self) -> None:
+        """Realtime mode: start the tracking and mapping workers."""
+        if self.config.mode != "realtime":
+            raise ValidationError("mode", "start() is for realtime mode")
+        if self._threads:
+            return
+        if self.device.type == "cuda":
+            self._streams = {"tracking": torch.cuda.Stream(self.device), "mapping": torch.cuda.Stream(self.device)}
+        self._threads = [threading.Thread(target=self._worker, args=(name, fn), name=f"voxfusion-{name}",
+                                          daemon=True)
+                         for name, fn in (("tracking", self._tracking_loop), ("mapping", self._mapping_loop))]
+        for th in self._threads:
+            th.start()
+
+    def submit(self, frame: RGBDFrame) -> None:
+        """Realtime mode: hand a frame to the tracker (never blocks on tracking or mapping)."""
+        self._raise_if_failed()
+        if not self._threads:
+            self.start()
+        with self._cond:
+            if self._closing:
+                raise ValidationError("frame", "the SLAM system is finishing or closed; no new frames")
+            if self._t_start is None:
+                self._t_start = time.perf_counter()
+            self._received += 1
+            self._pending.append((frame, time.perf_counter()))
+            self._cond.notify_all()
+
+    @contextmanager
+    def _stream(self, name: str) -> Iterator[None]:
+        stream = self._streams.get(name)
+        if stream is None:
+            yield
+        else:
+            with torch.cuda.stream(stream):
+                yield
+
+    def _worker(self, name: str, loop: Callable[[], None]) -> None:
+        try:
+            with self._stream(name):
+                loop()
+        except BaseException as e:  # noqa: BLE001 - any worker failure fails the run, with its cause
+            with self._cond:
+                self.error = e
+                self._closing = True
+                self._cond.notify_all()
+
+    def _tracking_loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._pending and not (self._closing and not self._pending):
+                    self._cond.wait()
+                if not self._pending:
+                    return
+                frame, received_at = self._pending.pop()  # the newest frame
+                self._dropped += len(self._pending)  # older untracked frames are dropped
+                self._pending.clear()
+                self._tracking_busy = True
+            first = not self.records
+            rec = self._track(frame, received_at)
+            with self._cond:
+                if not rec.lost:
+                    self._to_map.append(rec)
+                self._tracking_busy = False
+                self._cond.notify_all()
+                if first:  # the map must exist before the next frame can be tracked
+                    while self._snapshot is None and self.error is None:
+                        self._cond.wait()
+
+    def _mapping_loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._to_map and not (self._closing and not self._tracking_busy and not self._pending):
+                    self._cond.wait()
+                if not self._to_map:
+                    return
+                batch = list(self._to_map)
+                self._to_map.clear()
+                self._mapping_busy = True
+            for i, rec in enumerate(batch):
+                self._map(rec, optimize=i == len(batch) - 1)
+            self._publish()
+            with self._cond:
+                self._mapping_busy = False
+                self._cond.notify_all()
+
+    def finish(self, timeout_s: float | None = None) -> None:
+        """Process what is queued, run the final mapping iterations and publish the final map."""
+        if self.config.mode == "realtime" and self._threads:
+            with self._cond:
+                self._closing = True
+                self._cond.notify_all()
+            deadline = None if timeout_s is None else time.monotonic() + timeout_s
+            for th in self._threads:
+                th.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
+                if th.is_alive():
+                    raise SlamError(f"{th.name} did not finish within {timeout_s} s")
+            self._threads = []
+        self._raise_if_failed()
+        if self.mapper is not None:
+            self.mapper.finish()
+            self._publish()
+
+    def close(self) -> None:
+        """Stop the workers without further work (pending frames are discarded)."""
+        with self._cond:
+            self._closing = True
+            self._dropped += len(self._pending)
+            self._pending.clear()
+            self._to_map.clear()
+            self._cond.notify_all()
+        for th in self._threads:
+            th.join(timeout=60)
+        self._threads = []
+
+    def _raise_if_failed(self) -> None:
+        if self.error is not None:
+            raise SlamError(f"SLAM worker failed: {type(self.error).__name__}: {self.error}") from self.error
+
+    # ------------------------------------------------------------------ outputs
+    @property
+    def snapshot(self) -> MapSnapshot | None:
+        """The newest published map (None before the first frame is mapped)."""
+        with self._lock:
+            return self._snapshot
+
+    def trajectory(self, include_lost: bool = True) -> Trajectory:
+        """Every tracked frame's current pose (keyframe refinements applied), in tracking order."""
+        with self._lock:
+            recs = [r for r in self.records if include_lost or not r.lost]
+        if not recs:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(np.array([r.timestamp_s for r in recs]), np.stack([r.current_pose() for r in recs]))
+
+    def latest(self) -> FrameRecord | None:
+        with self._lock:
+            return self.records[-1] if self.records else None
+
+    def stats(self) -> SlamStats:
+        with self._lock:
+            tracked = len(self.records)
+            lost = sum(r.lost for r in self.records)
+            elapsed = time.perf_counter() - self._t_start if self._t_start else 0.0
+            lat = float(np.mean(self._latencies)) if self._latencies else float("nan")
+            return SlamStats(
+                frames_received=self._received, frames_tracked=tracked, frames_mapped=self._mapped,
+                frames_dropped=self._dropped, frames_lost=lost,
+                keyframes=len(self.mapper.keyframes) if self.mapper else 0,
+                voxels=self.mapper.voxels.n_voxels if self.mapper else 0,
+                fps=tracked / elapsed if elapsed > 0 else 0.0, latency_ms=lat,
+                map_version=self._snapshot.version if self._snapshot else 0)
+
+    def render_depth(self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int) -> RenderedImage:
+        """Depth (and colour) rendered from the newest snapshot at a camera pose (AR occlusion)."""
+        snap = self.snapshot
+        if snap is None:
+            raise ValidationError("map", "the map is empty: no frame has been mapped yet")
+        return render_depth_image(snap.voxels, snap.decoder, K, T_world_cam, width, height, self.config.render)
+
+    def mesh(self) -> trimesh.Trimesh:
+        """Mesh of the newest snapshot, cached per map version."""
+        snap = self.snapshot
+        if snap is None:
+            raise ValidationError("map", "the map is empty: no frame has been mapped yet")
+        cached = self._mesh_cache
+        if cached is not None and cached[0] == snap.version:
+            return cached[1]
+
+        def query(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+            from .field import query as field_query
+
+            with torch.no_grad():
+                return field_query(snap.voxels, snap.decoder, points.to(snap.voxels.device))
+
+        mesh = extract_mesh(snap.voxels.voxel_coords, snap.voxels.voxel_size_m, query,
+                            mesh_res=self.config.mesh_res, device=snap.voxels.device)
+        self._mesh_cache = (snap.version, mesh)
+        return mesh
