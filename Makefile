@@ -11,7 +11,7 @@ $(STAMP): pyproject.toml scripts/bootstrap.sh
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/python bench/run.py --synthetic --frames 60 --width 320 --height 240 --method baseline --name demo
+	VENV=$(VENV) bash scripts/demo.sh
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q

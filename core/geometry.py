@@ -29,6 +29,7 @@ __all__ = [
     "check_intrinsics",
     "backproject_depth",
     "invert_pose",
+    "nearest_rigid",
 ]
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -153,3 +154,15 @@ def backproject_depth(depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarra
     if T_world_cam is not None:
         pts = pts @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
     return pts
+
+
+def nearest_rigid(T: np.ndarray) -> np.ndarray:
+    """``T`` ``[4, 4]`` with its rotation block replaced by the nearest rotation (SVD) and the last row
+    set to ``0 0 0 1``: re-orthonormalises poses composed from many small updates."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    if np.linalg.det(U @ Vt) < 0:
+        U[:, -1] *= -1
+    T[:3, :3] = U @ Vt
+    T[3] = (0.0, 0.0, 0.0, 1.0)
+    return T

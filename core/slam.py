@@ -37,7 +37,7 @@ from .datasets.frame import RGBDFrame
 from .errors import ValidationError, VoxFusionError
 from .field import SDFDecoder
 from .framedata import FrameData, frame_to_device
-from .geometry import invert_pose
+from .geometry import invert_pose, nearest_rigid
 from .mapping import Keyframe, Mapper, MappingStep
 from .mesh import extract_mesh
 from .render import RenderedImage, render_depth_image
@@ -79,9 +79,9 @@ class FrameRecord:
     def current_pose(self) -> np.ndarray:
         """Pose with the newest keyframe refinements applied."""
         if self.keyframe is not None:
-            return self.keyframe.T_world_cam.cpu().numpy()
+            return nearest_rigid(self.keyframe.T_world_cam.cpu().numpy())
         if self.ref_keyframe is not None and self.T_ref_frame is not None:
-            return self.ref_keyframe.T_world_cam.cpu().numpy() @ self.T_ref_frame
+            return nearest_rigid(self.ref_keyframe.T_world_cam.cpu().numpy() @ self.T_ref_frame)
         return self.T_tracked
 
 
@@ -301,6 +301,9 @@ class SlamSystem:
             with self._cond:
                 self.error = e
                 self._closing = True
+                self._tracking_busy = self._mapping_busy = False
+                self._pending.clear()
+                self._to_map.clear()
                 self._cond.notify_all()
 
     def _tracking_loop(self) -> None:
@@ -330,7 +333,7 @@ class SlamSystem:
             with self._cond:
                 while not self._to_map and not (self._closing and not self._tracking_busy and not self._pending):
                     self._cond.wait()
-                if not self._to_map:
+                if not self._to_map or self.error is not None:
                     return
                 batch = list(self._to_map)
                 self._to_map.clear()

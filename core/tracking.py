@@ -25,7 +25,7 @@ import torch
 from .errors import ConfigError
 from .field import SDFDecoder
 from .framedata import FrameData, sample_pixels
-from .geometry import invert_pose
+from .geometry import invert_pose, nearest_rigid
 from .lie import perturb_right
 from .losses import LossConfig, compute_losses
 from .render import RenderConfig, camera_rays, render_rays
@@ -161,7 +161,7 @@ class Tracker:
             if it >= cfg.min_iters and still >= cfg.patience:
                 break
         with torch.no_grad():
-            T_est = perturb_right(T0, xi).cpu().numpy()
+            T_est = nearest_rigid(perturb_right(T0, xi).cpu().numpy())
         lost, reason = False, ""
         if valid < max(8, cfg.min_valid_fraction * cfg.rays):
             lost, reason = True, f"too few valid rays ({valid} of {cfg.rays})"

@@ -14,7 +14,7 @@ import numpy as np
 from .errors import CaptureFormatError, ShapeError
 from .geometry import pose_from_tum, pose_to_tum
 
-__all__ = ["Trajectory", "read_tum_trajectory", "write_tum_trajectory"]
+__all__ = ["Trajectory", "read_tum_trajectory", "write_tum_trajectory", "format_tum_trajectory"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -75,13 +75,18 @@ def read_tum_trajectory(path: str | Path) -> Trajectory:
     return Trajectory(a[:, 0], pose_from_tum(a[:, 1:4], q / norms[:, None]))
 
 
-def write_tum_trajectory(path: str | Path, traj: Trajectory) -> Path:
-    """Write ``traj`` in TUM format (full float precision); returns the path."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+def format_tum_trajectory(traj: Trajectory) -> str:
+    """``traj`` as TUM-format text (one line per pose, 9 decimals, with a header comment)."""
     t, q = pose_to_tum(traj.T_world_cam) if len(traj) else (np.zeros((0, 3)), np.zeros((0, 4)))
     lines = ["# timestamp tx ty tz qx qy qz qw  (camera-to-world, OpenCV camera axes, metres)"]
     for ts, ti, qi in zip(traj.timestamps_s, t, q, strict=True):
         lines.append(" ".join(f"{v:.9f}" for v in (ts, *ti, *qi)))
-    path.write_text("\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
+
+
+def write_tum_trajectory(path: str | Path, traj: Trajectory) -> Path:
+    """Write ``traj`` in TUM format (full float precision); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(format_tum_trajectory(traj))
     return path

@@ -35,7 +35,14 @@ from .tum import TUMCapture
 
 __all__ = ["CaptureFormat", "CAPTURE_FORMATS", "detect_format", "open_capture"]
 
-CaptureFormat = Literal["record3d", "stray", "scannet", "tum", "sevenscenes", "replica"]
+CaptureFormat = Literal["record3d", "stray", "scannet", "tum", "sevenscenes", "replica", "recording"]
+
+def _recording(path: Path) -> Capture:
+    """A server session recording (frame containers); the reader lives with the wire format."""
+    from voxfusion.proto.recording import RecordingCapture  # lazy: the format is defined in proto/
+
+    return RecordingCapture(path)
+
 
 CAPTURE_FORMATS: dict[str, tuple[str, Callable[..., Capture]]] = {
     "record3d": ("a .r3d file (Record3D export)", Record3DCapture),
@@ -44,6 +51,7 @@ CAPTURE_FORMATS: dict[str, tuple[str, Callable[..., Capture]]] = {
     "tum": ("rgb.txt + depth.txt (TUM RGB-D)", TUMCapture),
     "sevenscenes": ("frame-000000.pose.txt ... (7-Scenes)", SevenScenesCapture),
     "replica": ("results/ + traj.txt (Replica, NICE-SLAM release)", ReplicaCapture),
+    "recording": ("recording.vxr / *.vxr (a voxfusion server session's recording)", _recording),
 }
 """Format name -> (layout description, reader)."""
 
@@ -65,6 +73,8 @@ def detect_format(path: str | Path) -> CaptureFormat:
     if path.is_file():
         if path.suffix.lower() == ".r3d":
             return "record3d"
+        if path.suffix.lower() == ".vxr":
+            return "recording"
     else:
         has = lambda name: (path / name).exists()  # noqa: E731
         if has("odometry.csv") and (path / "depth").is_dir():
@@ -79,6 +89,8 @@ def detect_format(path: str | Path) -> CaptureFormat:
             return "replica"
         if _single_r3d(path) is not None:
             return "record3d"
+        if has("recording.vxr") or next(path.glob("*.vxr"), None) is not None:
+            return "recording"
     known = "; ".join(f"{name}: {desc}" for name, (desc, _) in CAPTURE_FORMATS.items())
     raise CaptureFormatError(path, f"unrecognised capture layout. Known layouts: {known}")
 

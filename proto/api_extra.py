@@ -1,0 +1,48 @@
+"""API models the server needs beside :mod:`.schemas` (kept apart so that module stays the wire helper's).
+
+Same conventions as :mod:`.schemas`: unknown keys refused, finite numbers only, frozen.
+"""
+
+from __future__ import annotations
+
+from pydantic import Field
+
+from .schemas import SessionStatus, _Model
+
+__all__ = ["SessionStatusOut", "SessionListOut", "HealthOut"]
+
+
+class SessionStatusOut(SessionStatus):
+    """``GET /sessions/{id}`` answer: :class:`~.schemas.SessionStatus` plus recovery information."""
+
+    resume_required: bool = False
+    """The server restarted while this session was open: every acknowledged frame is in its recording,
+    and ``POST /sessions/{id}/resume`` (or its next frame) replays the recording through a new engine.
+    Until then mesh / voxels / poses come from its last periodic checkpoint (if any)."""
+    replay_pending: int = Field(0, ge=0)
+    """Recorded frames still to be replayed (resume in progress)."""
+    frames_queued: int = Field(0, ge=0)
+    """Frames accepted but not yet handed to tracking (the bounded ingest queue)."""
+
+
+class SessionListOut(_Model):
+    """``GET /sessions`` answer."""
+
+    sessions: list[SessionStatusOut]
+
+
+class HealthOut(_Model):
+    """``GET /healthz`` answer."""
+
+    status: str = "ok"
+    version: str
+    """voxfusion version."""
+    device: str
+    """Torch device sessions run on (``cpu``, ``cuda``)."""
+    sessions_open: int = Field(ge=0)
+    """Sessions holding an engine (created, running, finishing)."""
+    sessions_total: int = Field(ge=0)
+    """Sessions known to the server (every state)."""
+    max_sessions: int = Field(ge=1)
+    zenoh: bool = False
+    """The zenoh bridge is running."""

@@ -1,0 +1,190 @@
+"""The server's domain errors and their HTTP answers, in one place.
+
+Routes and the :class:`~voxfusion.server.manager.SessionManager` raise domain errors (these, and the
+engine's :class:`~voxfusion.core.errors.ValidationError` family); :func:`install_exception_handlers`
+maps every one of them to a status and an :class:`~voxfusion.proto.schemas.ErrorOut` body
+``{"detail": ..., "field": ...}``:
+
+===========================================  ======  ==========================================
+error                                        status  when
+===========================================  ======  ==========================================
+``FrameDecodeError`` (unknown encoding)      415     a frame names an encoding we do not know
+``FrameDecodeError`` (anything else)         400     malformed frame message or upload
+``UnsupportedMediaTypeError``                415     a ``Content-Type`` the route does not take
+``ValidationError`` / ``ConfigError``        422     bad JSON field, unknown config key
+FastAPI ``RequestValidationError``           422     request body / query does not match its model
+``UnauthorizedError``                        401     no token / API key
+``ForbiddenError``                           403     wrong token / API key
+``SessionNotFoundError``                     404     unknown (or malformed) session id
+``NotReadyError``                            409     nothing to serve yet (no map, no pose)
+``SessionConflictError``                     409     the session is finished, finishing or failed
+``PayloadTooLargeError``                     413     body or image larger than the server's limits
+``QueueFullError``                           429     per-session ingest queue full (``Retry-After``)
+``TooManySessionsError``                     503     ``max_sessions`` open (``Retry-After``)
+===========================================  ======  ==========================================
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from voxfusion.core.errors import CaptureError, ValidationError, VoxFusionError
+from voxfusion.proto import FrameDecodeError
+
+__all__ = [
+    "ServerError",
+    "UnauthorizedError",
+    "ForbiddenError",
+    "SessionNotFoundError",
+    "SessionConflictError",
+    "NotReadyError",
+    "PayloadTooLargeError",
+    "UnsupportedMediaTypeError",
+    "QueueFullError",
+    "TooManySessionsError",
+    "install_exception_handlers",
+    "error_status",
+]
+
+log = logging.getLogger("voxfusion.server")
+
+
+class ServerError(VoxFusionError):
+    """A request the server refuses; ``status`` is its HTTP status, ``field`` the offending input."""
+
+    status = 400
+
+    def __init__(self, detail: str, field: str | None = None, headers: dict[str, str] | None = None) -> None:
+        self.detail = detail
+        self.field = field
+        self.headers = headers or {}
+        super().__init__(detail)
+
+
+class UnauthorizedError(ServerError):
+    """No credentials were sent (401)."""
+
+    status = 401
+
+    def __init__(self, detail: str, field: str | None = "Authorization") -> None:
+        super().__init__(detail, field, {"WWW-Authenticate": "Bearer"})
+
+
+class ForbiddenError(ServerError):
+    """The credentials sent are wrong (403)."""
+
+    status = 403
+
+
+class SessionNotFoundError(ServerError):
+    """No session has this id (404)."""
+
+    status = 404
+
+    def __init__(self, session_id: str) -> None:
+        shown = session_id if len(session_id) <= 64 else session_id[:64] + "..."
+        super().__init__(f"no session {shown!r}", "session_id")
+
+
+class SessionConflictError(ServerError):
+    """The session's state does not allow this (finished, finishing or failed) (409)."""
+
+    status = 409
+
+
+class NotReadyError(ServerError):
+    """Nothing to serve yet: no frame mapped / tracked (409)."""
+
+    status = 409
+
+
+class PayloadTooLargeError(ServerError):
+    """Body or image exceeds the server's limits (413)."""
+
+    status = 413
+
+
+class UnsupportedMediaTypeError(ServerError):
+    """Content type or encoding the route does not take (415)."""
+
+    status = 415
+
+
+class QueueFullError(ServerError):
+    """The session's ingest queue is full; retry after ``retry_after_s`` (429)."""
+
+    status = 429
+
+    def __init__(self, detail: str, retry_after_s: int = 1) -> None:
+        super().__init__(detail, None, {"Retry-After": str(max(1, int(retry_after_s)))})
+
+
+class TooManySessionsError(ServerError):
+    """The server holds ``max_sessions`` open sessions (503)."""
+
+    status = 503
+
+    def __init__(self, detail: str, retry_after_s: int = 30) -> None:
+        super().__init__(detail, None, {"Retry-After": str(max(1, int(retry_after_s)))})
+
+
+_UNKNOWN_ENCODING = re.compile(r"^unknown (encoding|levels)\b")
+
+
+def error_status(exc: BaseException) -> int:
+    """The HTTP status the server answers ``exc`` with (see the module table); 500 for anything else."""
+    if isinstance(exc, ServerError):
+        return exc.status
+    if isinstance(exc, FrameDecodeError):
+        if exc.field in ("depth", "color", "confidence") and _UNKNOWN_ENCODING.match(exc.problem):
+            return 415
+        return 400
+    if isinstance(exc, ValidationError):
+        return 422
+    if isinstance(exc, CaptureError):
+        return 500
+    return 500
+
+
+def _body(detail: str, field: str | None) -> dict:
+    return {"detail": detail, "field": field}
+
+
+def _pydantic_field(loc: tuple) -> str | None:
+    parts = [str(p) for p in loc if p not in ("body", "query", "path", "header")]
+    return ".".join(parts) or None
+
+
+def install_exception_handlers(app: FastAPI) -> None:
+    """Register the handlers that turn domain errors into ``ErrorOut`` JSON answers."""
+
+    @app.exception_handler(ServerError)
+    async def _server_error(_: Request, exc: ServerError) -> JSONResponse:
+        return JSONResponse(_body(exc.detail, exc.field), status_code=exc.status, headers=exc.headers)
+
+    @app.exception_handler(ValidationError)
+    async def _validation_error(_: Request, exc: ValidationError) -> JSONResponse:
+        return JSONResponse(_body(str(exc), exc.field), status_code=error_status(exc))
+
+    @app.exception_handler(RequestValidationError)
+    async def _request_validation(_: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = exc.errors()
+        first = errors[0] if errors else {"loc": (), "msg": "invalid request"}
+        field = _pydantic_field(tuple(first.get("loc", ())))
+        detail = f"{field}: {first.get('msg')}" if field else str(first.get("msg"))
+        return JSONResponse(_body(detail, field), status_code=422)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
+        return JSONResponse(_body(str(exc.detail), None), status_code=exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(VoxFusionError)
+    async def _voxfusion_error(_: Request, exc: VoxFusionError) -> JSONResponse:
+        log.exception("internal error: %s", exc)
+        return JSONResponse(_body(f"internal error: {exc}", None), status_code=500)

@@ -1,0 +1,413 @@
+"""The session manager: the one API every transport (HTTP routes, the zenoh bridge) drives.
+
+It owns the metadata database, the open :class:`~.session.Session` objects, stored outputs of finished
+sessions, pose listeners, and a housekeeping thread (failure detection, periodic checkpoints). Every
+method is synchronous and thread-safe; HTTP routes call them from the thread pool.
+
+Example (what the zenoh bridge does)::
+
+    sid, token = manager.create_session("desk", {"mapping": {"iters": 10}})
+    manager.check_token(sid, token)                 # raises UnauthorizedError / ForbiddenError
+    seq = manager.submit_frame_bytes(sid, message)  # durable when this returns
+    manager.add_pose_listener(sid, lambda pose: publish(pose.model_dump_json()))
+    manager.finish(sid)
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import threading
+from collections import Counter
+from typing import Any
+
+from voxfusion import __version__
+from voxfusion.core.config import apply_overrides, config_from_dict, config_to_dict
+from voxfusion.core.errors import ConfigError, ValidationError
+from voxfusion.core.slam_config import CONFIG_DIR, VoxFusionConfig, load_preset, resolve_device
+from voxfusion.proto.api_extra import HealthOut, SessionStatusOut
+from voxfusion.proto.recording import RECORDING_FILENAME, scan_recording
+from voxfusion.proto.schemas import PoseOut, RenderRequest, SessionMode, SessionState, Trajectory
+
+from .auth import check_session_id, hash_token, new_session_id, new_token, verify_api_key, verify_token
+from .errors import (
+    NotReadyError,
+    PayloadTooLargeError,
+    ServerError,
+    SessionConflictError,
+    SessionNotFoundError,
+    TooManySessionsError,
+    error_status,
+)
+from .ingest import check_message_limits
+from .outputs import RenderBody, encode_render
+from .session import PoseListener, Session
+from .settings import ServerSettings
+from .store import SessionRow, SessionStore
+from .stored import StoredMap
+
+__all__ = ["SessionManager", "MESH_FORMATS", "VOXEL_FORMATS"]
+
+log = logging.getLogger("voxfusion.server")
+
+MESH_FORMATS = ("ply", "glb", "obj")
+VOXEL_FORMATS = ("npz", "ply")
+_OPEN_STATES = {SessionState.created.value, SessionState.running.value, SessionState.finishing.value}
+_SERVER_KEYS = ("device", "mode")
+
+
+class SessionManager:
+    """Sessions of one server (see the module docstring). Call :meth:`open` before use, :meth:`close` after."""
+
+    def __init__(self, settings: ServerSettings) -> None:
+        self.settings = settings
+        self.device = resolve_device(settings.device)
+        self.default_preset = settings.default_preset or ("cpu-small" if self.device.type == "cpu" else "default")
+        self.zenoh_running = False
+        self.counters: Counter[tuple[str, str]] = Counter()
+        """Event counters for ``/metrics``: ``(name, label value)`` -> count."""
+        self._lock = threading.RLock()
+        self._open: dict[str, Session] = {}
+        self._stored: dict[str, StoredMap] = {}
+        self._listeners: dict[str, list[PoseListener]] = {}
+        self._store: SessionStore | None = None
+        self._stop = threading.Event()
+        self._housekeeper: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ lifecycle of the manager
+    def open(self) -> None:
+        """Open the database (sessions from earlier runs stay listed) and start housekeeping."""
+        self.settings.sessions_dir.mkdir(parents=True, exist_ok=True)
+        self._store = SessionStore(self.settings.database_path)
+        self._preset_names()  # fail early if the presets folder is missing
+        if self.default_preset not in self._preset_names():
+            raise ConfigError("default_preset", f"unknown preset {self.default_preset!r}; known: "
+                                                f"{self._preset_names()}")
+        detached = [r.id for r in self.store.all() if r.state in _OPEN_STATES]
+        if detached:
+            log.info("%d session(s) were open when the server stopped; they resume on request or on their next "
+                     "frame: %s", len(detached), ", ".join(detached))
+        self._stop.clear()
+        self._housekeeper = threading.Thread(target=self._housekeeping, name="voxfusion-housekeeping", daemon=True)
+        self._housekeeper.start()
+
+    def close(self) -> None:
+        """Stop every open session (checkpointing its map; recordings are already durable)."""
+        self._stop.set()
+        if self._housekeeper is not None:
+            self._housekeeper.join(timeout=10)
+        with self._lock:
+            sessions = list(self._open.values())
+            self._open.clear()
+        for s in sessions:
+            s.close(checkpoint=True)
+        if self._store is not None:
+            self._store.close()
+
+    @property
+    def store(self) -> SessionStore:
+        if self._store is None:
+            raise ValidationError("manager", "SessionManager.open() has not been called")
+        return self._store
+
+    def _housekeeping(self) -> None:
+        while not self._stop.wait(0.25):
+            with self._lock:
+                sessions = list(self._open.values())
+            for s in sessions:
+                try:
+                    s.poll()
+                except Exception:  # noqa: BLE001 - housekeeping must go on for the other sessions
+                    log.exception("housekeeping of session %s failed", s.id)
+
+    # ------------------------------------------------------------------ identity and access
+    @staticmethod
+    def _preset_names() -> list[str]:
+        return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+
+    def _build_config(self, preset: str | None, overrides: dict[str, Any] | None) -> tuple[str, VoxFusionConfig]:
+        preset = preset or self.default_preset
+        known = self._preset_names()
+        if preset not in known:
+            raise ValidationError("preset", f"unknown preset {preset!r}; known presets: {known}")
+        cfg = load_preset(CONFIG_DIR / f"{preset}.yaml")
+        if overrides:
+            if not isinstance(overrides, dict):
+                raise ValidationError("config", "must be a JSON object of configuration overrides")
+            for key in _SERVER_KEYS:
+                if key in overrides:
+                    raise ValidationError(f"config.{key}", "is chosen by the server (device: voxfusion serve "
+                                                           "--device; mode: the session's 'mode')")
+            try:
+                cfg = apply_overrides(cfg, overrides)
+            except ConfigError as e:
+                raise ConfigError(f"config.{e.field}", e.problem) from e
+        return preset, self._server_config(cfg)
+
+    def _server_config(self, cfg: VoxFusionConfig) -> VoxFusionConfig:
+        return apply_overrides(cfg, {"device": self.settings.device, "mode": "realtime"})
+
+    def _open_count(self) -> int:
+        return sum(1 for s in self._open.values() if s.is_open)
+
+    def _check_capacity(self) -> None:
+        if self._open_count() >= self.settings.max_sessions:
+            raise TooManySessionsError(f"the server holds its maximum of {self.settings.max_sessions} open sessions; "
+                                  "finish or delete one, or retry later")
+
+    def create_session(self, name: str | None = None, overrides: dict[str, Any] | None = None, *,
+                       preset: str | None = None, mode: SessionMode | str = SessionMode.realtime) -> tuple[str, str]:
+        """Create a session; returns ``(id, token)`` (the token is shown only here).
+
+        Raises:
+            ValidationError / ConfigError: unknown preset or bad override (422; ``field`` names the key).
+            TooManySessionsError: ``max_sessions`` are open (503).
+        """
+        mode = SessionMode(mode)
+        preset, cfg = self._build_config(preset, overrides)
+        with self._lock:
+            self._check_capacity()
+            sid, token = new_session_id(), new_token()
+            row = self.store.insert(sid, name, hash_token(token), preset, config_to_dict(cfg), mode.value,
+                                    SessionState.created.value)
+            self._listeners.setdefault(sid, [])
+            self._open[sid] = self._new_session(row, cfg, replay=False)
+        self.counters[("sessions_created_total", "")] += 1
+        log.info("session %s created (preset %s, mode %s)", sid, preset, mode.value)
+        return sid, token
+
+    def _new_session(self, row: SessionRow, cfg: VoxFusionConfig, replay: bool) -> Session:
+        return Session(row.id, row.name, SessionMode(row.mode), row.created_at, cfg,
+                       self.settings.sessions_dir / row.id, self.settings, self.store,
+                       self._listeners.setdefault(row.id, []), replay=replay)
+
+    def get(self, session_id: str) -> SessionRow:
+        """The session's metadata row; raises :class:`SessionNotFoundError` (also for a malformed id)."""
+        check_session_id(session_id)
+        row = self.store.get(session_id)
+        if row is None:
+            raise SessionNotFoundError(session_id)
+        return row
+
+    def check_token(self, session_id: str, token: str | None) -> None:
+        """Raise unless ``token`` is this session's (404 unknown id, 401 missing, 403 wrong; constant time)."""
+        verify_token(token, self.get(session_id).token_sha256)
+
+    def check_api_key(self, key: str | None) -> None:
+        """Raise unless ``key`` is the server API key (no-op when the server has none)."""
+        verify_api_key(key, self.settings.api_key)
+
+    # ------------------------------------------------------------------ frames
+    def _session_for_ingest(self, session_id: str) -> Session:
+        with self._lock:
+            s = self._open.get(session_id)
+            if s is not None:
+                return s
+        row = self.get(session_id)
+        if row.state in _OPEN_STATES:
+            self.resume(session_id)
+            with self._lock:
+                return self._open[session_id]
+        raise SessionConflictError(f"session {session_id} is {row.state}; it takes no more frames", "session_id")
+
+    def submit_frame(self, session_id: str, data: bytes) -> tuple[int, bool]:
+        """Check, record durably and queue one frame message; returns ``(seq, duplicate)``.
+
+        The same path for every transport. A session left open by a restart resumes first.
+
+        Raises:
+            FrameDecodeError (400/415), PayloadTooLargeError (413), SessionNotFoundError (404),
+            SessionConflictError (409), QueueFullError (429), TooManySessionsError (503: resuming needs a slot).
+        """
+        try:
+            check_session_id(session_id)
+            if len(data) > self.settings.max_frame_bytes:
+                raise PayloadTooLargeError(f"frame is {len(data)} bytes, more than this server's limit of "
+                                      f"{self.settings.max_frame_bytes}", "body")
+            check_message_limits(data, self.settings.max_image_width, self.settings.max_image_height)
+            session = self._session_for_ingest(session_id)
+            seq, duplicate = session.ingest(data)
+        except Exception as e:
+            self.counters[("frames_rejected_total", str(error_status(e)))] += 1
+            raise
+        self.counters[("frames_duplicate_total" if duplicate else "frames_accepted_total", "")] += 1
+        self.counters[("frame_bytes_total", "")] += len(data)
+        return seq, duplicate
+
+    def submit_frame_bytes(self, session_id: str, data: bytes) -> int:
+        """:meth:`submit_frame` returning only the frame's ``seq``."""
+        return self.submit_frame(session_id, data)[0]
+
+    # ------------------------------------------------------------------ queries
+    def _open_session(self, session_id: str) -> Session | None:
+        with self._lock:
+            return self._open.get(session_id)
+
+    def _stored_map(self, session_id: str) -> StoredMap:
+        with self._lock:
+            sm = self._stored.get(session_id)
+            if sm is None:
+                sm = self._stored[session_id] = StoredMap(self.settings.sessions_dir / session_id, self.device)
+            return sm
+
+    def status(self, session_id: str) -> SessionStatusOut:
+        row = self.get(session_id)
+        s = self._open_session(session_id)
+        if s is not None:
+            return s.status()
+        stats = dict(row.stats or {})
+        for key in ("id", "name", "mode", "state", "created_at", "last_error", "resume_required", "replay_pending",
+                    "frames_queued"):
+            stats.pop(key, None)
+        if "frames_received" not in stats:
+            rec = self.settings.sessions_dir / session_id / RECORDING_FILENAME
+            stats["frames_received"] = len(scan_recording(rec).offsets) if rec.is_file() else 0
+        return SessionStatusOut(id=row.id, name=row.name, mode=SessionMode(row.mode), state=SessionState(row.state),
+                                created_at=row.created_at, last_error=row.last_error,
+                                resume_required=row.state in _OPEN_STATES, **stats)
+
+    def list_sessions(self) -> list[SessionStatusOut]:
+        return [self.status(r.id) for r in self.store.all()]
+
+    def latest_pose(self, session_id: str) -> PoseOut:
+        self.get(session_id)
+        s = self._open_session(session_id)
+        if s is not None and s.slam.records:
+            return s.latest_pose()
+        poses = self._stored_map(session_id).poses() if s is None else []
+        if not poses:
+            raise NotReadyError(f"session {session_id} has no tracked frame yet")
+        return poses[-1]
+
+    def trajectory(self, session_id: str) -> Trajectory:
+        """Every pose of the session (with keyframe refinements), in tracking order."""
+        self.get(session_id)
+        s = self._open_session(session_id)
+        poses = s.poses() if s is not None else self._stored_map(session_id).poses()
+        return Trajectory(session=session_id, poses=poses)
+
+    def render(self, session_id: str, req: RenderRequest) -> RenderBody:
+        """Depth (+ validity mask, + colour if asked) rendered from the map at a client's pose."""
+        self.get(session_id)
+        s = self._open_session(session_id)
+        image, version = s.render(req) if s is not None else self._stored_map(session_id).render(req)
+        if not req.with_color:
+            image = image._replace(color=None)
+        return encode_render(image, req.format, version)
+
+    def mesh_bytes(self, session_id: str, fmt: str = "ply") -> tuple[bytes, int]:
+        """The mesh (``ply``/``glb``/``obj``) and its map version (cached per version)."""
+        if fmt not in MESH_FORMATS:
+            raise ValidationError("format", f"unknown mesh format {fmt!r}; use one of {', '.join(MESH_FORMATS)}")
+        self.get(session_id)
+        s = self._open_session(session_id)
+        return s.mesh_bytes(fmt) if s is not None else self._stored_map(session_id).mesh_bytes(fmt)
+
+    def voxels_bytes(self, session_id: str, fmt: str = "npz") -> tuple[bytes, int]:
+        if fmt not in VOXEL_FORMATS:
+            raise ValidationError("format", f"unknown voxel format {fmt!r}; use one of {', '.join(VOXEL_FORMATS)}")
+        self.get(session_id)
+        s = self._open_session(session_id)
+        return s.voxels_bytes(fmt) if s is not None else self._stored_map(session_id).voxels_bytes(fmt)
+
+    def add_pose_listener(self, session_id: str, callback: PoseListener) -> None:
+        """Call ``callback(PoseOut)`` with each new pose of the session (from its tracking thread; keep it
+        fast). Listeners stay registered across a resume."""
+        self.get(session_id)
+        with self._lock:
+            self._listeners.setdefault(session_id, []).append(callback)
+
+    def pose_listener_count(self, session_id: str) -> int:
+        """Listeners registered for the session (WebSockets, zenoh subscribers)."""
+        with self._lock:
+            return len(self._listeners.get(session_id, []))
+
+    def remove_pose_listener(self, session_id: str, callback: PoseListener) -> None:
+        with self._lock:
+            listeners = self._listeners.get(session_id, [])
+            if callback in listeners:
+                listeners.remove(callback)
+
+    # ------------------------------------------------------------------ lifecycle of sessions
+    def resume(self, session_id: str) -> SessionStatusOut:
+        """Replay the recording of a session left open by a restart (or failed) through a new engine.
+
+        A running session is left as it is. Raises :class:`SessionConflictError` for a finished session and
+        :class:`TooManySessionsError` when no slot is free.
+        """
+        row = self.get(session_id)
+        with self._lock:
+            s = self._open.get(session_id)
+            if s is not None and s.is_open:
+                return s.status()
+            row = self.get(session_id)
+            if row.state == SessionState.finished.value:
+                raise SessionConflictError(f"session {session_id} is finished; nothing to resume", "session_id")
+            self._check_capacity()
+            if s is not None:
+                self._open.pop(session_id)
+                s.close(checkpoint=False)
+            cfg = self._server_config(config_from_dict(VoxFusionConfig, row.config))
+            s = self._open[session_id] = self._new_session(row, cfg, replay=True)
+            self._stored.pop(session_id, None)
+            self.store.set_state(session_id, s.state.value, last_error="")
+        self.counters[("sessions_resumed_total", "")] += 1
+        log.info("session %s resumed: replaying %d recorded frames", session_id, s.status().replay_pending)
+        return s.status()
+
+    def finish(self, session_id: str, timeout_s: float | None = None) -> SessionStatusOut:
+        """Process what is queued, run the final mapping, write the final checkpoint, mesh and trajectory.
+
+        Blocks until done; idempotent for a finished session. A session left open by a restart is
+        resumed (its recording replayed) first. Raises :class:`SessionConflictError` for a failed session.
+        """
+        row = self.get(session_id)
+        s = self._open_session(session_id)
+        if s is None:
+            if row.state == SessionState.finished.value:
+                return self.status(session_id)
+            if row.state not in _OPEN_STATES:
+                raise SessionConflictError(f"session {session_id} is {row.state}: it cannot be finished "
+                                      f"({row.last_error})", "session_id")
+            self.resume(session_id)
+            s = self._open_session(session_id)
+            if s is None:
+                raise SessionNotFoundError(session_id)
+        status = s.finish(self.settings.finish_timeout_s if timeout_s is None else timeout_s)
+        with self._lock:
+            if self._open.get(session_id) is s:
+                del self._open[session_id]
+        return status
+
+    def delete(self, session_id: str) -> None:
+        """Stop the session (if open) and delete its metadata, recording and outputs."""
+        self.get(session_id)
+        with self._lock:
+            s = self._open.pop(session_id, None)
+            self._stored.pop(session_id, None)
+            self._listeners.pop(session_id, None)
+        if s is not None:
+            s.close(checkpoint=False)
+        self.store.delete(session_id)
+        shutil.rmtree(self.settings.sessions_dir / check_session_id(session_id), ignore_errors=True)
+        self.counters[("sessions_deleted_total", "")] += 1
+
+    # ------------------------------------------------------------------ health
+    def health(self) -> HealthOut:
+        with self._lock:
+            n_open = self._open_count()
+        return HealthOut(version=__version__, device=str(self.device), sessions_open=n_open,
+                         sessions_total=len(self.store.all()), max_sessions=self.settings.max_sessions,
+                         zenoh=self.zenoh_running)
+
+    def open_statuses(self) -> list[SessionStatusOut]:
+        """Status of every session holding an engine (for ``/metrics``)."""
+        with self._lock:
+            sessions = list(self._open.values())
+        out = []
+        for s in sessions:
+            try:
+                out.append(s.status())
+            except ServerError:
+                continue
+        return out

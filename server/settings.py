@@ -1,0 +1,87 @@
+"""Server settings: one frozen dataclass, filled by ``voxfusion serve`` (flags) or by tests.
+
+Example::
+
+    settings = ServerSettings(data_dir=Path("voxfusion-data"), device="cpu", api_key=None)
+    app = create_app(settings)
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from voxfusion.core.errors import ConfigError
+
+__all__ = ["ServerSettings", "API_KEY_ENV"]
+
+API_KEY_ENV = "VOXFUSION_API_KEY"
+"""Environment variable holding the optional server API key (required to create and list sessions)."""
+
+
+@dataclass(frozen=True)
+class ServerSettings:
+    """Everything the server needs; nothing heavy is built from it before the app's lifespan starts."""
+
+    data_dir: Path = Path("voxfusion-data")
+    """Root of the server's state: ``sessions.sqlite3`` and ``sessions/<id>/`` (recording, checkpoints)."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Torch device of every session's engine (``auto``: CUDA when available)."""
+    default_preset: str | None = None
+    """Preset of new sessions that name none; ``None``: ``cpu-small`` on CPU, ``default`` on CUDA."""
+    api_key: str | None = None
+    """When set, ``POST /sessions``, ``GET /sessions`` and ``GET /metrics`` require it (``X-API-Key`` or
+    ``Authorization: Bearer``). :meth:`from_env` reads it from ``VOXFUSION_API_KEY``."""
+    zenoh: bool | None = False
+    """Start the zenoh bridge: ``True`` (warn if it cannot start), ``False``, ``None`` = when importable."""
+    zenoh_config: Path | None = None
+    """A zenoh JSON5 config file for the bridge (default: a peer on loopback)."""
+    max_sessions: int = 8
+    """Open sessions (created, running or finishing) held at once; more are refused with 503."""
+    max_frame_bytes: int = 32 * 1024 * 1024
+    """Largest request body (a frame message or multipart upload); larger ones get 413."""
+    max_image_width: int = 4096
+    """Largest depth / colour image width in pixels; larger frames get 413."""
+    max_image_height: int = 4096
+    """Largest depth / colour image height in pixels."""
+    max_pending_frames: int = 32
+    """Frames of one session accepted but not yet handed to tracking (being recorded, or queued behind a
+    replay or an ``offline`` session's tracker); more get 429 with ``Retry-After``."""
+    checkpoint_interval_s: float = 30.0
+    """A running session's map is checkpointed when this many seconds have passed since the last
+    checkpoint and the map changed, ..."""
+    checkpoint_keyframes: int = 10
+    """... or when this many keyframes were added since the last one (and at finish, always)."""
+    finish_timeout_s: float = 600.0
+    """Longest ``POST /finish`` waits for the queue to drain and the final mapping to run."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "data_dir", Path(self.data_dir))
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ConfigError("device", f"must be auto, cpu or cuda, got {self.device!r}")
+        for name in ("max_sessions", "max_frame_bytes", "max_image_width", "max_image_height",
+                     "max_pending_frames", "checkpoint_keyframes"):
+            if getattr(self, name) < 1:
+                raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
+        for name in ("checkpoint_interval_s", "finish_timeout_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(name, f"must be > 0 seconds, got {getattr(self, name)}")
+        if self.api_key is not None and len(self.api_key) < 8:
+            raise ConfigError("api_key", "must be at least 8 characters")
+
+    @classmethod
+    def from_env(cls, **kwargs: object) -> ServerSettings:
+        """Settings with ``api_key`` from ``VOXFUSION_API_KEY`` (if set and not given explicitly)."""
+        if "api_key" not in kwargs:
+            kwargs["api_key"] = os.environ.get(API_KEY_ENV) or None
+        return cls(**kwargs)  # type: ignore[arg-type]
+
+    @property
+    def sessions_dir(self) -> Path:
+        return self.data_dir / "sessions"
+
+    @property
+    def database_path(self) -> Path:
+        return self.data_dir / "sessions.sqlite3"

@@ -1,0 +1,61 @@
+"""``voxfusion serve``: the streaming SLAM server (FastAPI on uvicorn; OpenAPI docs at ``/docs``).
+
+Example::
+
+    voxfusion serve                                   # 127.0.0.1:8000, data in ./voxfusion-data
+    voxfusion serve --host 0.0.0.0 --data-dir /data   # what the Docker image runs
+    VOXFUSION_API_KEY=... voxfusion serve             # creating / listing sessions needs the key
+
+Everything is embedded: SQLite for session metadata, the data folder for recordings and checkpoints,
+and (``--zenoh``, on by default when the ``zenoh`` package is installed) an in-process zenoh peer.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+__all__ = ["register", "serve_command"]
+
+
+def serve_command(
+    host: Annotated[str, typer.Option(help="Interface to listen on (0.0.0.0: every interface).")] = "127.0.0.1",
+    port: Annotated[int, typer.Option(help="TCP port.")] = 8000,
+    data_dir: Annotated[Path, typer.Option("--data-dir", help="Sessions database, recordings and checkpoints.")]
+    = Path("voxfusion-data"),
+    device: Annotated[str, typer.Option(help="auto, cpu or cuda: where every session's engine runs.")] = "auto",
+    config: Annotated[str | None, typer.Option("--config", help="Default preset of new sessions (configs/<name>."
+                                                                "yaml); default cpu-small on CPU, default on "
+                                                                "CUDA.")] = None,
+    zenoh: Annotated[bool | None, typer.Option("--zenoh/--no-zenoh", help="Start the zenoh bridge (default: when "
+                                                                            "the zenoh package is installed).")]
+    = None,
+    zenoh_config: Annotated[Path | None, typer.Option("--zenoh-config", help="zenoh JSON5 config file.")] = None,
+    max_sessions: Annotated[int, typer.Option(help="Open sessions held at once (more get 503).")] = 8,
+    max_frame_mb: Annotated[float, typer.Option(help="Largest request body in MiB (more get 413).")] = 32.0,
+    max_pending_frames: Annotated[int, typer.Option(help="Per-session ingest queue bound (more get 429).")] = 32,
+    checkpoint_interval_s: Annotated[float, typer.Option(help="Periodic map checkpoint interval.")] = 30.0,
+    log_level: Annotated[str, typer.Option(help="debug, info, warning or error.")] = "info",
+) -> None:
+    """Run the streaming server until interrupted (Ctrl-C stops it cleanly; a hard kill loses nothing
+    acknowledged: open sessions resume from their recordings)."""
+    import logging
+
+    import uvicorn
+
+    from voxfusion.server import ServerSettings, create_app
+
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    settings = ServerSettings.from_env(
+        data_dir=data_dir, device=device, default_preset=config, zenoh=zenoh, zenoh_config=zenoh_config,
+        max_sessions=max_sessions, max_frame_bytes=int(max_frame_mb * 1024 * 1024),
+        max_pending_frames=max_pending_frames, checkpoint_interval_s=checkpoint_interval_s)
+    typer.echo(f"voxfusion server on http://{host}:{port} (docs: /docs), data in {data_dir}")
+    uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level.lower(), timeout_graceful_shutdown=30)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``serve`` to the ``voxfusion`` app."""
+    app.command("serve")(serve_command)
