@@ -6,13 +6,13 @@
 # Environment overrides:
 #   PYTHON=python3.11        interpreter used to create .venv (>= 3.11)
 #   VOXFUSION_TORCH="torch==2.13.0"   the torch requirement to install (e.g. a CUDA build pin)
-#   VOXFUSION_EXTRAS="baseline,test,server"   extras of the voxfusion distribution to install
+#   VOXFUSION_EXTRAS="baseline,test,server,iphone"   extras of the voxfusion distribution to install
 #   VOXFUSION_SKIP_APT=1     do not install system packages (you manage them yourself)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3}
-EXTRAS=${VOXFUSION_EXTRAS:-baseline,test,server}
+EXTRAS=${VOXFUSION_EXTRAS:-baseline,test,server,iphone}
 SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libglx0 libgomp1 libx11-6)
 
 log() { printf '\033[1m[bootstrap]\033[0m %s\n' "$*"; }

@@ -22,6 +22,9 @@ _COMMAND_MODULES = (
     "voxfusion.commands.eval",
     "voxfusion.commands.map",
     "voxfusion.commands.run",
+    "voxfusion.commands.serve",
+    "voxfusion.commands.stream",
+    "voxfusion.commands.bridge",
 )
 
 for _name in _COMMAND_MODULES:
