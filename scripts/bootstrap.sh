@@ -13,7 +13,7 @@ cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3}
 EXTRAS=${VOXFUSION_EXTRAS:-baseline,test,server,iphone}
-SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libglx0 libgomp1 libx11-6)
+SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libglx0 libgomp1 libx11-6 curl)
 
 log() { printf '\033[1m[bootstrap]\033[0m %s\n' "$*"; }
 
