@@ -6,15 +6,13 @@ loopback port), tiny engine settings and tiny synthetic frames.
 
 from __future__ import annotations
 
-import socket
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 import uvicorn
 
+from tests.server.srvutil import free_port, wait_until  # noqa: F401 - shared test helpers, re-exported
 from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.trajectory import Trajectory
@@ -23,25 +21,6 @@ from voxfusion.server import ServerSettings, create_app
 TINY = ["mapping.rays_per_frame=128", "tracking.rays=128", "tracking.iters=10", "mapping.first_frame_iters=30",
         "field.sdf_hidden=32", "field.color_hidden=32", "mesh_res=4"]
 """Engine overrides small enough for a 2-core CPU (same method, fewer rays and iterations)."""
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def wait_until(predicate, timeout_s: float, what: str, poll_s: float = 0.05):
-    """Poll ``predicate`` until it returns a truthy value (returned); fail the test after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    event = threading.Event()
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        event.wait(poll_s)
 
 
 def tiny_frames(n: int, seed: int = 0, width: int = 96, height: int = 72) -> list[RGBDFrame]:
