@@ -5,11 +5,11 @@ Pipeline (all batched over rays, no per-ray Python loops):
 1. :func:`camera_rays` - pixel rays with ``dir_cam = ((u - cx) / fx, (v - cy) / fy, 1)``, so the ray
    parameter ``t`` **is camera z-depth** (metres) and rendered depth compares directly to depth maps.
    Differentiable w.r.t. ``T_world_cam``.
-2. :func:`intersect_voxels` - each ray's first ``M_h`` allocated voxels within ``t <= D_max``, in order
-   of entry, by a vectorised Amanatides-Woo DDA: every grid-plane crossing of every ray is generated
-   at once, sorted per ray, and the cell sequence is the cumulative sum of the crossing steps;
-   membership is a ``searchsorted`` on the map's sorted Morton codes. Rays are clipped to the bounding
-   box of the allocated voxels first.
+2. :func:`~.raycast.intersect_voxels` - each ray's first ``M_h`` allocated voxels within ``t <= D_max``,
+   in order of entry, by a vectorised Amanatides-Woo DDA over the map's dense index grid that skips
+   runs of empty octree blocks (see :mod:`.raycast`; :func:`~.raycast.intersect_voxels_reference` is
+   the plain version it is tested against). Rays are clipped to the bounding box of the allocated
+   voxels first.
 3. :func:`sample_along_hits` - samples every ``step_ratio * voxel_size_m`` metres (metric, along the
    ray) over the union of hit segments: stratified with jitter in training, midpoints in inference.
 4. :func:`render_rays` - evaluates an :data:`~.field.SDFField` at the samples and composites depth
@@ -31,14 +31,15 @@ import torch
 
 from .errors import ConfigError, ShapeError, ValidationError
 from .field import NeuralField, SDFDecoder, SDFField
+from .raycast import VoxelHits, intersect_voxels, intersect_voxels_reference
 from .voxels import VoxelMap
-from .voxels.morton import morton_encode_planar
 
 __all__ = [
     "RenderConfig",
     "camera_rays",
     "VoxelHits",
     "intersect_voxels",
+    "intersect_voxels_reference",
     "RaySamples",
     "sample_along_hits",
     "RenderOutput",
@@ -46,9 +47,6 @@ __all__ = [
     "RenderedImage",
     "render_depth_image",
 ]
-
-_EVENT_BUDGET = 1 << 20  # grid-plane crossings per intersection chunk (~150 B each at peak)
-
 
 @dataclass(frozen=True)
 class RenderConfig:
@@ -142,161 +140,6 @@ def camera_rays(K: torch.Tensor | np.ndarray, T_world_cam: torch.Tensor | np.nda
     dirs = d_cam @ T[:3, :3].transpose(0, 1)
     origins = T[:3, 3].expand_as(dirs)
     return origins.to(dtype), dirs.to(dtype)
-
-
-@dataclass
-class VoxelHits:
-    """Ordered ray-voxel hits. ``M <= M_h`` columns (trimmed to the most hits any ray has).
-
-    Attributes:
-        t_entry, t_exit: ``[N, M]`` entry / exit ``t`` of each hit voxel, ascending per ray (0 padded).
-        voxel_idx: ``[N, M]`` int64 voxel index, -1 padded (valid hits come first).
-        hit: ``[N]`` bool, the ray hits at least one allocated voxel within range.
-    """
-
-    t_entry: torch.Tensor
-    t_exit: torch.Tensor
-    voxel_idx: torch.Tensor
-    hit: torch.Tensor
-
-
-def _slab(o: torch.Tensor, d: torch.Tensor, lo: torch.Tensor,
-          hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Ray/box slab test (float64): ``t_near, t_far`` ``[N]`` (empty when near >= far). Handles d == 0."""
-    nz = d != 0
-    sd = torch.where(nz, d, torch.ones_like(d))
-    ta, tb = (lo - o) / sd, (hi - o) / sd
-    inside = (o >= lo) & (o <= hi)
-    inf = torch.full_like(o, math.inf)
-    t_min = torch.where(nz, torch.minimum(ta, tb), torch.where(inside, -inf, inf))
-    t_max = torch.where(nz, torch.maximum(ta, tb), torch.where(inside, inf, -inf))
-    return t_min.max(-1).values, t_max.min(-1).values
-
-
-def _dda_chunk(vmap: VoxelMap, o: torch.Tensor, d: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor,
-               ok: torch.Tensor, n_planes: int, bmin: torch.Tensor, bmax: torch.Tensor,
-               max_hits: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Vectorised Amanatides-Woo over ``n`` rays (float64). Returns entry, exit, idx, count (unpadded M)."""
-    v = vmap.voxel_size_m
-    n = o.shape[0]
-    dev = o.device
-    p0 = o + d * t0[:, None]
-    cell0 = torch.floor(p0 / v).clamp(bmin.double(), bmax.double()).to(torch.int64)  # [n, 3]
-    step = torch.sign(d).to(torch.int64)
-    nz = d != 0
-    sd = torch.where(nz, d, torch.ones_like(d))
-    k = torch.arange(n_planes, device=dev, dtype=torch.int64)
-    plane = (cell0 + (step > 0).to(torch.int64))[:, :, None] + step[:, :, None] * k  # [n, 3, P]
-    t_ev = (plane.to(torch.float64) * v - o[:, :, None]) / sd[:, :, None]
-    t_ev = torch.where(nz[:, :, None] & (t_ev < t1[:, None, None]), t_ev, torch.full_like(t_ev, math.inf))
-    t_sorted, order = torch.sort(t_ev.reshape(n, 3 * n_planes), dim=1)
-    finite = torch.isfinite(t_sorted)
-    axis = torch.div(order, n_planes, rounding_mode="floor")
-    # cells after each crossing, axis-first [3, n, E + 1] (contiguous per axis for the bit tricks)
-    moves = torch.stack([torch.cumsum(((axis == a) & finite).to(torch.int64), 1) * step[:, a:a + 1]
-                         for a in range(3)])  # [3, n, E]
-    c0 = cell0.t()[:, :, None]
-    cells = torch.cat([c0, c0 + moves], 2)
-    inf_col = torch.full((n, 1), math.inf, dtype=t_sorted.dtype, device=dev)
-    entry = torch.cat([t0[:, None], t_sorted], 1)
-    exit_ = torch.cat([t_sorted, inf_col], 1)
-    lo, hi = t0[:, None], t1[:, None]
-    entry = torch.minimum(torch.maximum(entry, lo), hi)
-    exit_ = torch.minimum(torch.maximum(exit_, lo), hi)
-    inside = ((cells >= bmin[:, None, None]) & (cells <= bmax[:, None, None])).all(0)
-    valid = ok[:, None] & (exit_ > entry) & inside
-    codes = morton_encode_planar(cells)  # cells lie within the map's bounds (or are masked by `inside`)
-    idx = vmap.lookup_codes(codes)
-    is_hit = valid & (idx >= 0)
-    rank = torch.cumsum(is_hit.to(torch.int64), 1) - 1
-    keep = is_hit & (rank < max_hits)
-    count = keep.sum(1)
-    m = int(count.max()) if n else 0
-    out_e = torch.zeros(n, m, dtype=torch.float64, device=dev)
-    out_x = torch.zeros(n, m, dtype=torch.float64, device=dev)
-    out_i = torch.full((n, m), -1, dtype=torch.int64, device=dev)
-    r, c = torch.nonzero(keep, as_tuple=True)
-    col = rank[r, c]
-    out_e[r, col] = entry[r, c]
-    out_x[r, col] = exit_[r, c]
-    out_i[r, col] = idx[r, c]
-    return out_e, out_x, out_i, count
-
-
-def _pad_cols(x: torch.Tensor, m: int, value: float) -> torch.Tensor:
-    if x.shape[1] == m:
-        return x
-    return torch.cat([x, x.new_full((x.shape[0], m - x.shape[1]), value)], 1)
-
-
-@torch.no_grad()
-def intersect_voxels(voxel_map: VoxelMap, origins: torch.Tensor, dirs: torch.Tensor, max_distance_m: float,
-                     max_hits: int, t_far: torch.Tensor | None = None) -> VoxelHits:
-    """First ``max_hits`` allocated voxels along each ray within ``0 <= t <= min(max_distance_m, t_far)``.
-
-    Args:
-        origins, dirs: ``[N, 3]`` world-frame rays (``dirs`` need not be unit; no gradient flows).
-        max_distance_m: ``D_max`` in t-units.
-        max_hits: ``M_h`` (see :meth:`RenderConfig.max_hits_for`).
-        t_far: optional ``[N]`` per-ray upper bound on ``t`` (e.g. ``D_gt + tr`` while mapping).
-
-    Returns:
-        :class:`VoxelHits` with ``t`` in ``origins``' dtype. A voxel counts as hit when the ray spends a
-        positive length inside it (grazing an edge or corner exactly is not a hit).
-    """
-    if origins.dim() != 2 or origins.shape[1] != 3:
-        raise ShapeError("origins", tuple(origins.shape), "[N, 3]")
-    if dirs.shape != origins.shape:
-        raise ShapeError("dirs", tuple(dirs.shape), f"{tuple(origins.shape)}")
-    n = origins.shape[0]
-    dev = voxel_map.device
-    out_dtype = origins.dtype if origins.is_floating_point() else torch.float32
-    bounds = voxel_map.voxel_bounds
-    if bounds is None or n == 0:
-        z = torch.zeros(n, 0, dtype=out_dtype, device=dev)
-        return VoxelHits(z, z.clone(), torch.full((n, 0), -1, dtype=torch.int64, device=dev),
-                         torch.zeros(n, dtype=torch.bool, device=dev))
-    bmin, bmax = bounds
-    v = voxel_map.voxel_size_m
-    o = origins.detach().to(dev, torch.float64)
-    d = dirs.detach().to(dev, torch.float64)
-    t_near, t_max = _slab(o, d, bmin.double() * v, (bmax + 1).double() * v)
-    t1 = torch.clamp(t_max, max=float(max_distance_m))
-    if t_far is not None:
-        if t_far.shape != (n,):
-            raise ShapeError("t_far", tuple(t_far.shape), f"({n},)")
-        t1 = torch.minimum(t1, t_far.detach().to(dev, torch.float64))
-    t0 = torch.clamp(t_near, min=0.0)
-    ok = (t1 > t0) & torch.isfinite(o).all(-1) & torch.isfinite(d).all(-1)
-    t0 = torch.where(ok, t0, torch.zeros_like(t0))
-    t1 = torch.where(ok, t1, torch.zeros_like(t1))
-    # grid planes each ray can cross per axis, plus one for the partial first cell
-    planes = torch.ceil((t1 - t0)[:, None] * d.abs() / v).max(-1).values + 1
-    planes = torch.where(ok, planes, torch.zeros_like(planes)).to(torch.int64)
-    order = torch.argsort(planes)  # chunk rays of similar length together
-    parts = []
-    start = 0
-    planes_sorted = planes[order].tolist()
-    while start < n:
-        # rays sorted by length: size the chunk so that its longest ray stays within the event budget
-        size0 = max(1, _EVENT_BUDGET // (3 * max(1, planes_sorted[start]) + 1))
-        size = max(1, _EVENT_BUDGET // (3 * max(1, planes_sorted[min(n, start + size0) - 1]) + 1))
-        rows = order[start:start + size]
-        p_max = max(1, planes_sorted[min(n, start + size) - 1])
-        parts.append((rows, *_dda_chunk(voxel_map, o[rows], d[rows], t0[rows], t1[rows], ok[rows], p_max,
-                                         bmin, bmax, max_hits)))
-        start += size
-    m = max(int(part[1].shape[1]) for part in parts)
-    t_entry = torch.zeros(n, m, dtype=torch.float64, device=dev)
-    t_exit = torch.zeros(n, m, dtype=torch.float64, device=dev)
-    vidx = torch.full((n, m), -1, dtype=torch.int64, device=dev)
-    hit = torch.zeros(n, dtype=torch.bool, device=dev)
-    for rows, e, x, i, c in parts:
-        t_entry[rows] = _pad_cols(e, m, 0.0)
-        t_exit[rows] = _pad_cols(x, m, 0.0)
-        vidx[rows] = _pad_cols(i, m, -1)
-        hit[rows] = c > 0
-    return VoxelHits(t_entry.to(out_dtype), t_exit.to(out_dtype), vidx, hit)
 
 
 @dataclass

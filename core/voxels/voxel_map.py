@@ -11,6 +11,9 @@ Voxels and vertices are keyed by Morton codes (:mod:`.morton`): integer coordina
 
 Lookups use a sorted copy of the codes and ``torch.searchsorted``; the sorted copy is merged (not
 re-sorted) on every allocation. Nothing is pre-allocated: the tables grow with the map, on any device.
+Point lookups and ray marching use a dense index grid over the bounding box instead
+(:meth:`VoxelMap.index_grid`, built lazily after each allocation) while it fits in
+:attr:`VoxelMap.dense_grid_max_cells`; beyond that they fall back to the sorted codes.
 
 Example:
     >>> vmap = VoxelMap(voxel_size_m=0.2, embed_dim=16, seed=0)
@@ -30,6 +33,7 @@ from typing import Any
 import torch
 
 from ..errors import ShapeError, ValidationError
+from .index_grid import VoxelIndexGrid, build_index_grid
 from .morton import (
     CORNER_OFFSETS,
     MORTON_MAX_COORD,
@@ -55,7 +59,7 @@ class MemoryReport:
     embedding_bytes: int
     """Vertex embeddings (``n_vertices * embed_dim * 4`` for float32)."""
     index_bytes: int
-    """Codes, coordinates, vertex ids and the sorted lookup copies."""
+    """Codes, coordinates, vertex ids, the sorted lookup copies and the dense lookup grids built so far."""
     decoder_bytes: int
     """Parameters and buffers of the decoder passed to :meth:`VoxelMap.memory_report` (0 if none)."""
 
@@ -85,6 +89,8 @@ class VoxelMap:
         vertex_codes: ``[V]`` int64 Morton codes of vertex lattice coordinates (vertex index = row).
     """
 
+    _dense_grid_max_cells: int = 1 << 26
+
     def __init__(self, voxel_size_m: float = 0.2, embed_dim: int = 16, device: str | torch.device = "cpu",
                  init_std: float = 0.01, seed: int | None = None) -> None:
         if not (isinstance(voxel_size_m, (int, float)) and math.isfinite(voxel_size_m) and voxel_size_m > 0):
@@ -112,6 +118,7 @@ class VoxelMap:
         self._sorted_vertex_codes = torch.empty(0, **i64)
         self._vertex_perm = torch.empty(0, **i64)
         self._bounds: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._grids: dict[int, VoxelIndexGrid | None] = {}
         self.embeddings = torch.nn.Parameter(torch.empty(0, self.embed_dim, device=device))
 
     @property
@@ -166,6 +173,50 @@ class VoxelMap:
         self._bounds = (lo, hi)
 
     @property
+    def dense_grid_max_cells(self) -> int:
+        """Budget of :meth:`index_grid`: no dense grid (sorted-code lookups instead) when the bounding
+        box plus a one-cell border has more cells than this. Default ``1 << 26`` cells (256 MiB of int32);
+        0 disables the dense grids. Setting it drops the grids built so far."""
+        return self._dense_grid_max_cells
+
+    @dense_grid_max_cells.setter
+    def dense_grid_max_cells(self, cells: int) -> None:
+        if not isinstance(cells, int) or cells < 0:
+            raise ValidationError("dense_grid_max_cells", f"must be an integer >= 0, got {cells!r}")
+        self._dense_grid_max_cells = cells
+        self._invalidate_grids()
+
+    def index_grid(self, level: int = 0) -> VoxelIndexGrid | None:
+        """Dense index grid over the allocated voxels' bounding box (plus a one-cell border), or None.
+
+        ``level`` 0: each cell is a voxel and holds its index (-1 where unallocated). ``level`` k > 0:
+        each cell is a block of ``2**k`` voxels per axis (the octree level ``code >> 3k``) and holds 0
+        where any voxel of the block is allocated, -1 elsewhere (used to skip empty space).
+
+        Built on first use after each allocation and cached; a grid is never modified in place (growth
+        builds a new one), so snapshots can share it. None when the map is empty or the grid would
+        exceed :attr:`dense_grid_max_cells`.
+        """
+        if level < 0:
+            raise ValidationError("level", f"must be >= 0, got {level}")
+        grids = self._grids
+        if level not in grids:
+            if self.n_voxels == 0:
+                grid = None
+            else:
+                coords = self._voxel_coords
+                values = (torch.arange(coords.shape[0], device=coords.device) if level == 0
+                          else torch.zeros(coords.shape[0], dtype=torch.int64, device=coords.device))
+                grid = build_index_grid(coords, values, level, border=1,
+                                        max_cells=self._dense_grid_max_cells)
+            grids[level] = grid
+        return grids[level]
+
+    def _invalidate_grids(self) -> None:
+        # a new dict, never cleared in place: snapshots keep the grids of their own tables
+        self._grids = {}
+
+    @property
     def sorted_voxel_codes(self) -> torch.Tensor:
         """``[M]`` ascending voxel codes; ``voxel_codes[sorted_voxel_perm] == sorted_voxel_codes``."""
         return self._sorted_voxel_codes
@@ -210,10 +261,14 @@ class VoxelMap:
     def lookup_voxels(self, points_world: torch.Tensor) -> torch.Tensor:
         """Voxel index of each world point: ``[N, 3]`` metres -> ``[N]`` int64, -1 outside allocated voxels.
 
-        Non-finite or out-of-range points give -1 (no error).
+        Non-finite or out-of-range points give -1 (no error). Uses the dense :meth:`index_grid` when the
+        map has one, else the sorted Morton codes (same result).
         """
         self._check_points(points_world, "points_world")
         ijk = self.points_to_voxel_coords(points_world)
+        grid = self.index_grid()
+        if grid is not None:
+            return grid.lookup(ijk)
         inside = ((ijk >= MORTON_MIN_COORD) & (ijk <= MORTON_MAX_COORD)).all(-1)
         codes = morton_encode(torch.where(inside[:, None], ijk, torch.zeros_like(ijk)))
         idx = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes)
@@ -281,6 +336,7 @@ class VoxelMap:
         self._voxel_coords = torch.cat([self._voxel_coords, new_coords])
         self._voxel_vertex_ids = torch.cat([self._voxel_vertex_ids, vertex_ids])
         self._update_bounds(new_coords)
+        self._invalidate_grids()
         if optimizer is not None:
             self.grow_optimizer_state(optimizer)
         return k
@@ -319,6 +375,7 @@ class VoxelMap:
         idx_tensors = [self._voxel_codes, self._voxel_coords, self._voxel_vertex_ids, self._vertex_codes,
                        self._sorted_voxel_codes, self._voxel_perm, self._sorted_vertex_codes,
                        self._vertex_perm]
+        idx_tensors += [g.table for g in self._grids.values() if g is not None]
         dec = 0
         if decoder is not None:
             tensors = list(decoder.parameters()) + list(decoder.buffers())
@@ -386,6 +443,7 @@ class VoxelMap:
         self._voxel_coords = morton_decode(vc)
         self._bounds = None
         self._update_bounds(self._voxel_coords)
+        self._invalidate_grids()
         self._sorted_voxel_codes, self._voxel_perm = torch.sort(vc)
         self._sorted_vertex_codes, self._vertex_perm = torch.sort(tc)
         self.embeddings = torch.nn.Parameter(emb.clone())
@@ -405,10 +463,13 @@ class VoxelMap:
         Index tables are shared, not copied: allocation never mutates them in place, it replaces them,
         so the snapshot keeps seeing the tables of the moment it was taken. Only the embeddings are
         copied (``[V, D]`` floats, no gradient), because the optimiser updates those in place. Take the
-        snapshot on the thread that allocates and optimises.
+        snapshot on the thread that allocates and optimises. The dense :meth:`index_grid` is built
+        first, so the snapshot shares it instead of building its own.
         """
+        self.index_grid()
         snap = object.__new__(VoxelMap)
         snap.__dict__.update(self.__dict__)
+        snap._grids = dict(self._grids)
         snap._former_embeddings = []
         snap._generator = None
         snap.embeddings = torch.nn.Parameter(self.embeddings.detach().clone(), requires_grad=False)
@@ -427,6 +488,7 @@ class VoxelMap:
             setattr(self, name, getattr(self, name).to(device))
         if self._bounds is not None:
             self._bounds = (self._bounds[0].to(device), self._bounds[1].to(device))
+        self._invalidate_grids()
         self.embeddings = torch.nn.Parameter(self.embeddings.detach().to(device))
         return self
 

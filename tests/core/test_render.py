@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-import voxfusion.core.render as render_module
+import voxfusion.core.raycast as raycast_module
+from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import ConfigError, ShapeError
 from voxfusion.core.field import NeuralField, SDFDecoder
 from voxfusion.core.geometry import backproject_depth, make_intrinsics
@@ -17,6 +18,7 @@ from voxfusion.core.render import (
     VoxelHits,
     camera_rays,
     intersect_voxels,
+    intersect_voxels_reference,
     render_depth_image,
     render_rays,
     sample_along_hits,
@@ -79,12 +81,13 @@ def _random_rays(n: int, seed: int):
     return o, d
 
 
+@pytest.mark.parametrize("impl", [intersect_voxels, intersect_voxels_reference])
 @pytest.mark.parametrize("seed,max_hits", [(0, 1000), (1, 3)])
-def test_intersection_matches_brute_force(seed, max_hits):
+def test_intersection_matches_brute_force(seed, max_hits, impl):
     vm = _random_sparse_map(seed)
     o, d = _random_rays(300, seed + 10)
     d_max = 2.5
-    hits = intersect_voxels(vm, o, d, d_max, max_hits)
+    hits = impl(vm, o, d, d_max, max_hits)
     ref = brute_force_hits(vm, o, d, d_max, max_hits)
     assert hits.voxel_idx.shape[1] <= max_hits
     n_hit_rays = 0
@@ -99,14 +102,132 @@ def test_intersection_matches_brute_force(seed, max_hits):
     assert 50 < n_hit_rays < 300  # the test exercises both hits and misses
 
 
-def test_intersection_chunking_does_not_change_the_result(monkeypatch):
+@pytest.mark.parametrize("impl", [intersect_voxels, intersect_voxels_reference])
+def test_intersection_chunking_does_not_change_the_result(monkeypatch, impl):
     vm = _random_sparse_map(8)
     o, d = _random_rays(200, 9)
-    whole = intersect_voxels(vm, o, d, 2.5, 1000)
-    monkeypatch.setattr(render_module, "_EVENT_BUDGET", 300)  # a few rays per chunk
-    chunked = intersect_voxels(vm, o, d, 2.5, 1000)
+    whole = impl(vm, o, d, 2.5, 1000)
+    monkeypatch.setattr(raycast_module, "_EVENT_BUDGET", 300)  # a few rays per chunk
+    chunked = impl(vm, o, d, 2.5, 1000)
+    assert_same_hits(chunked, whole)
+
+
+# ---------------------------------------------------------------- fast intersection == reference
+def assert_same_hits(got: VoxelHits, want: VoxelHits) -> None:
+    """Same ordered voxel lists and bit-identical entry / exit times (the fast path is exact)."""
     for name in ("t_entry", "t_exit", "voxel_idx", "hit"):
-        assert torch.equal(getattr(whole, name), getattr(chunked, name)), name
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        assert torch.equal(a, b), f"{name}: {int((a != b).sum())} entries differ"
+
+
+def _force_coarse_level(monkeypatch, level: int) -> None:
+    """Make the fast path skip empty space with blocks of ``2**level`` voxels (0: never skip)."""
+    monkeypatch.setattr(raycast_module, "_COARSE_LEVELS", (level,) if level else ())
+    monkeypatch.setattr(raycast_module, "_COARSE_GAIN", math.inf)
+
+
+@pytest.mark.parametrize("level", [0, 1, 2, 3])
+@pytest.mark.parametrize("n_rays", [1, 7, 300])
+def test_fast_intersection_equals_reference_on_random_rays(monkeypatch, level, n_rays):
+    _force_coarse_level(monkeypatch, level)
+    g = torch.Generator().manual_seed(n_rays)
+    vm = _random_sparse_map(n_rays + level)
+    o, d = _random_rays(max(n_rays, 30), n_rays + 20)
+    o, d = o[-n_rays:], d[-n_rays:]  # small batches are oblique rays, the large one has axis-parallel ones
+    t_far = torch.rand(n_rays, generator=g, dtype=torch.float64) * 3
+    for max_hits, tf, dtype in ((1000, None, torch.float64), (1000, t_far, torch.float32), (3, t_far, torch.float64),
+                                (1, None, torch.float32)):
+        args = (vm, o.to(dtype), d.to(dtype), 2.5, max_hits, tf)
+        assert_same_hits(intersect_voxels(*args), intersect_voxels_reference(*args))
+
+
+@pytest.mark.parametrize("level", [0, 2])
+@pytest.mark.parametrize("voxel,offset", [(0.25, 0), (0.2, -1234), (0.1, 300_000)])
+def test_fast_intersection_equals_reference_on_lattice_aligned_rays(monkeypatch, level, voxel, offset):
+    """Origins on grid planes, edges and corners; integer-ratio directions that cross edges and corners
+    exactly (tied crossings); zero and tiny direction components; maps near and far from the origin."""
+    _force_coarse_level(monkeypatch, level)
+    g = torch.Generator().manual_seed(offset + 7)
+    coords = torch.stack(torch.meshgrid(*[torch.arange(-6, 6)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    vm = VoxelMap(voxel, seed=0)
+    vm.allocate((coords[torch.rand(coords.shape[0], generator=g) < 0.15].double() + 0.5 + offset) * voxel)
+    n = 600
+    o = (torch.randint(-8, 8, (n, 3), generator=g).double() + offset) * voxel
+    o[n // 2:] += torch.randint(0, 2, (n - n // 2, 3), generator=g).double() * voxel / 2
+    d = torch.randint(-3, 4, (n, 3), generator=g).double()
+    d[d.abs().sum(1) == 0] = 1.0
+    d[:50] *= 0.1
+    d[50:100, 0] = 1e-12
+    t_far = torch.rand(n, generator=g, dtype=torch.float64) * 5
+    for d_max, max_hits in ((100.0, 1000), (3.0, 4)):
+        for tf in (None, t_far):
+            args = (vm, o, d, d_max, max_hits, tf)
+            fast, ref = intersect_voxels(*args), intersect_voxels_reference(*args)
+            assert_same_hits(fast, ref)
+    assert 0 < int(ref.hit.sum()) < n
+
+
+def _synthetic_room_map(voxel: float) -> tuple[VoxelMap, list]:
+    cap = SyntheticCapture(SyntheticConfig(n_frames=12, width=64, height=48))
+    vm = VoxelMap(voxel, seed=0)
+    views = []
+    for i in (0, 11):
+        f = cap[i]
+        vm.allocate(torch.as_tensor(backproject_depth(f.depth_m, f.K, f.T_world_cam)))
+        views.append(f)
+    return vm, views
+
+
+@pytest.mark.parametrize("voxel", [0.2, 0.05])
+def test_fast_intersection_equals_reference_on_synthetic_room(voxel):
+    """Camera rays of the synthetic room, as mapping (t_far = depth + tr) and full-image rendering cast them;
+    the automatic coarse level choice skips empty space for the fine map and not for the coarse one."""
+    vm, views = _synthetic_room_map(voxel)
+    cfg = RenderConfig()
+    for f in views:
+        o, d = camera_rays(f.K, f.T_world_cam, width=64, height=48, dtype=torch.float32)
+        depth = torch.as_tensor(f.depth_m).reshape(-1)
+        t_far = torch.where(depth > 0, depth + cfg.truncation_m, torch.full_like(depth, 1e-3))
+        for tf, max_hits in ((t_far, cfg.max_hits_for(voxel)), (None, cfg.max_hits_for(voxel)), (None, 2)):
+            args = (vm, o, d, cfg.max_distance_m, max_hits, tf)
+            assert_same_hits(intersect_voxels(*args), intersect_voxels_reference(*args))
+    o, d = camera_rays(views[0].K, views[0].T_world_cam, width=64, height=48, dtype=torch.float64)
+    rays = raycast_module._clip_rays(vm, o, d, cfg.max_distance_m, None)
+    mean_cells = float(((rays.t1 - rays.t0)[:, None] * rays.d.abs()).sum(-1)[rays.ok].mean()) / voxel
+    assert (raycast_module._skip_grid(vm, mean_cells) is not None) == (voxel < 0.1)
+
+
+def test_fast_intersection_walks_that_leave_the_dense_grid_are_exact(monkeypatch):
+    """Rays clipped to a box larger than the dense grid step out of it: cells outside are no hits."""
+    for level in (0, 2):
+        _force_coarse_level(monkeypatch, level)
+        vm = _random_sparse_map(5)
+        lo, hi = vm.voxel_bounds
+        monkeypatch.setattr(vm, "_bounds", (lo - 3, hi + 2))
+        o, d = _random_rays(300, 15)
+        for tf in (None, torch.rand(300, dtype=torch.float64) * 3):
+            args = (vm, o * 1.5, d, 3.5, 1000, tf)
+            assert_same_hits(intersect_voxels(*args), intersect_voxels_reference(*args))
+
+
+def test_fast_intersection_without_dense_grid_uses_sorted_codes():
+    """Maps whose bounding box exceeds the dense-grid budget (far-apart clusters) take the reference path."""
+    vm = VoxelMap(0.2, seed=0)
+    vm.allocate(torch.tensor([[0.1, 0.1, 0.1], [0.3, 0.1, 0.1], [2e4, 2e4, -2e4]], dtype=torch.float64))
+    assert vm.index_grid() is None  # 1e5 voxels apart on each axis
+    o = torch.tensor([[-1.0, 0.15, 0.15], [2e4 + 0.1, 2e4 + 0.1, -2e4 + 5.0]], dtype=torch.float64)
+    d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
+    hits = intersect_voxels(vm, o, d, 100.0, 10)
+    i0, i1, i2 = vm.lookup_voxels(torch.tensor([[0.1, 0.1, 0.1], [0.3, 0.1, 0.1], [2e4, 2e4, -2e4]])).tolist()
+    assert hits.voxel_idx.tolist() == [[i0, i1], [i2, -1]]
+    assert_same_hits(hits, intersect_voxels_reference(vm, o, d, 100.0, 10))
+    small = _random_sparse_map(6)
+    o, d = _random_rays(200, 16)
+    fast = intersect_voxels(small, o, d, 2.5, 1000)
+    small.dense_grid_max_cells = 0
+    assert small.index_grid() is None
+    assert_same_hits(intersect_voxels(small, o, d, 2.5, 1000), fast)
 
 
 def test_intersection_respects_per_ray_far_bound_and_empty_map():
@@ -122,6 +243,21 @@ def test_intersection_respects_per_ray_far_bound_and_empty_map():
     assert empty.voxel_idx.shape == (100, 0) and not empty.hit.any()
     with pytest.raises(ShapeError):
         intersect_voxels(vm, o, d[:, :2], 2.5, 10)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_fast_intersection_on_cuda_equals_reference():
+    vm, views = _synthetic_room_map(0.05)
+    f = views[0]
+    o, d = camera_rays(f.K, f.T_world_cam, width=64, height=48)
+    t_far = torch.as_tensor(f.depth_m).reshape(-1) + 0.1
+    cpu = intersect_voxels_reference(vm, o, d, 10.0, 100, t_far)
+    vm.to("cuda")
+    for tf in (None, t_far.cuda()):
+        fast = intersect_voxels(vm, o.cuda(), d.cuda(), 10.0, 100, tf)
+        assert_same_hits(fast, intersect_voxels_reference(vm, o.cuda(), d.cuda(), 10.0, 100, tf))
+    assert torch.equal(fast.voxel_idx.cpu(), cpu.voxel_idx)
+    torch.testing.assert_close(fast.t_entry.cpu(), cpu.t_entry, atol=1e-9, rtol=0)
 
 
 # ---------------------------------------------------------------- rays and sampling

@@ -14,6 +14,7 @@ from voxfusion.core.voxels import (
     morton_decode,
     morton_encode,
 )
+from voxfusion.core.voxels.index_grid import build_index_grid
 
 
 def _reference_morton(x: int, y: int, z: int) -> int:
@@ -133,6 +134,136 @@ def test_allocation_rejects_bad_points_naming_the_field():
     assert vm.lookup_voxels(torch.tensor([[float("inf"), 0.0, 0.0], [1e9, 0, 0]])).tolist() == [-1, -1]
     with pytest.raises(ValidationError):
         VoxelMap(voxel_size_m=0.0)
+
+
+# ---------------------------------------------------------------- dense index grid
+def _sorted_code_lookup(vm: VoxelMap, points: torch.Tensor) -> torch.Tensor:
+    """Point -> voxel index through the sorted Morton codes only (the path the dense grid replaces)."""
+    ijk = vm.points_to_voxel_coords(points)
+    inside = ((ijk >= MORTON_MIN_COORD) & (ijk <= MORTON_MAX_COORD)).all(-1)
+    idx = vm.lookup_codes(morton_encode(torch.where(inside[:, None], ijk, torch.zeros_like(ijk))))
+    return torch.where(inside, idx, torch.full_like(idx, -1))
+
+
+def _query_points(seed: int, centre: tuple[float, float, float], scale: float) -> torch.Tensor:
+    """Points in and around a map: inside the box, beyond it, on voxel faces, non-finite, out of range."""
+    c = torch.tensor(centre, dtype=torch.float64)
+    inner = _random_points(3000, seed, scale).double() + c
+    outer = _random_points(500, seed + 1, 3 * scale).double() + c
+    faces = torch.round(inner[:300] / 0.2) * 0.2  # exactly on voxel planes (0.2 m voxels)
+    special = torch.tensor([[float("nan"), 0.0, 0.0], [float("inf"), 1.0, 1.0], [-float("inf"), 0.0, 0.0],
+                            [1e12, 0.0, 0.0], [0.0, -1e12, 0.0], [0.0, 0.0, 0.0], [-1e-9, -1e-9, -1e-9]],
+                           dtype=torch.float64)
+    return torch.cat([inner, outer, faces, special])
+
+
+@pytest.mark.parametrize("centre", [(0.0, 0.0, 0.0), (-3000.0, 250.5, -7.3), (150_000.0, -150_000.0, 0.0)])
+def test_lookup_via_dense_grid_equals_sorted_codes(centre):
+    vm = VoxelMap(0.2, seed=0)
+    vm.allocate(_random_points(800, 20, 1.5).double() + torch.tensor(centre, dtype=torch.float64))
+    grid = vm.index_grid()
+    assert grid is not None and grid.n_occupied == vm.n_voxels and grid.level == 0
+    lo, hi = vm.voxel_bounds
+    assert torch.equal(grid.origin, lo - 1) and grid.shape == tuple((hi - lo + 3).tolist())  # one-cell border
+    q = _query_points(21, centre, 1.5)
+    for pts in (q, q.float()):
+        got = vm.lookup_voxels(pts)
+        want = _sorted_code_lookup(vm, pts)
+        assert torch.equal(got, want)
+        assert 0 < int((got >= 0).sum()) < pts.shape[0]
+    # the dense table holds exactly the allocated voxels
+    assert torch.equal(grid.lookup(vm.voxel_coords), torch.arange(vm.n_voxels))
+    assert int((grid.table >= 0).sum()) == vm.n_voxels
+
+
+def test_far_apart_voxels_fall_back_to_sorted_codes():
+    """A bounding box beyond the dense-grid budget (clusters ~100 km apart) gets no grid; lookups still work."""
+    vm = VoxelMap(0.2, seed=0)
+    a = _random_points(300, 22, 1.0).double()
+    b = a + torch.tensor([1e5, -1e5, 5e4], dtype=torch.float64)
+    vm.allocate(torch.cat([a, b]))
+    assert vm.index_grid() is None and vm.index_grid(2) is None  # ~10^16 cells
+    q = torch.cat([_query_points(23, (0.0, 0.0, 0.0), 1.0), _query_points(24, (1e5, -1e5, 5e4), 1.0)])
+    got = vm.lookup_voxels(q)
+    assert torch.equal(got, _sorted_code_lookup(vm, q))
+    assert (vm.lookup_voxels(torch.cat([a, b])) >= 0).all()
+    # a budget of 0 disables the grid of a small map too, with the same answers
+    small = VoxelMap(0.2, seed=0)
+    small.allocate(a)
+    q = _query_points(25, (0.0, 0.0, 0.0), 1.0)
+    with_grid = small.lookup_voxels(q)
+    assert small.index_grid() is not None
+    small.dense_grid_max_cells = 0
+    assert small.index_grid() is None
+    assert torch.equal(small.lookup_voxels(q), with_grid)
+    with pytest.raises(ValidationError):
+        small.dense_grid_max_cells = -1
+
+
+def test_coarse_index_grid_marks_occupied_octree_blocks():
+    vm = VoxelMap(0.2, seed=0)
+    vm.allocate(_random_points(400, 26, 2.0))
+    for level in (1, 2, 3):
+        grid = vm.index_grid(level)
+        blocks = torch.unique(torch.div(vm.voxel_coords, 2**level, rounding_mode="floor"), dim=0)
+        # the block of a voxel is its Morton parent `level` levels up
+        parents = torch.unique(vm.voxel_codes >> (3 * level))
+        shift = (1 << 20) - (1 << (20 - level))  # the parent code keys the offset block coordinate
+        assert torch.equal(torch.unique(morton_decode(parents) + shift, dim=0), blocks)
+        assert blocks.shape[0] == grid.n_occupied
+        assert (grid.lookup(blocks) == 0).all()
+        everything = torch.stack(torch.meshgrid(*[torch.arange(o, o + s) for o, s in
+                                                 zip(grid.origin_xyz, grid.shape, strict=True)],
+                                                indexing="ij"), -1).reshape(-1, 3)
+        assert int((grid.lookup(everything) >= 0).sum()) == blocks.shape[0]
+    with pytest.raises(ValidationError):
+        vm.index_grid(-1)
+    assert VoxelMap(0.2).index_grid() is None  # empty map
+
+
+def test_build_index_grid_budget_and_errors():
+    ijk = torch.tensor([[0, 0, 0], [3, -2, 5], [-4, 1, 1]])
+    g = build_index_grid(ijk, torch.arange(3), level=0, border=2, max_cells=10_000)
+    assert g.shape == (12, 8, 10) and g.n_cells == 960 and g.nbytes == 960 * 4
+    assert g.lookup(torch.cat([ijk, torch.tensor([[9, 9, 9], [1, 1, 1]])])).tolist() == [0, 1, 2, -1, -1]
+    assert build_index_grid(ijk, torch.arange(3), level=0, border=2, max_cells=959) is None
+    assert build_index_grid(ijk, torch.zeros(3), level=1, border=0, max_cells=100).shape == (4, 2, 3)
+    with pytest.raises(ShapeError):
+        build_index_grid(ijk[:, :2], torch.arange(3), level=0, border=1, max_cells=100)
+    with pytest.raises(ShapeError):
+        build_index_grid(ijk, torch.arange(2), level=0, border=1, max_cells=100)
+    with pytest.raises(ShapeError):
+        g.lookup(ijk[:, :2])
+
+
+def test_index_grid_is_rebuilt_on_growth_and_snapshots_keep_theirs():
+    vm = VoxelMap(0.2, seed=0)
+    a = _random_points(300, 27, 1.0)
+    b = _random_points(300, 28, 1.0) + 4.0  # grows the bounding box
+    vm.allocate(a)
+    snap = vm.snapshot()
+    grid = vm.index_grid()
+    assert snap.index_grid() is grid  # built before the snapshot, shared
+    table_before = grid.table.clone()
+    vm.allocate(b)
+    assert vm.index_grid() is not grid
+    assert torch.equal(grid.table, table_before)  # never modified in place
+    assert snap.index_grid() is grid
+    assert (snap.lookup_voxels(b) == -1).all() and (snap.lookup_voxels(a) >= 0).all()
+    assert (vm.lookup_voxels(b) >= 0).all()
+    assert torch.equal(vm.lookup_voxels(torch.cat([a, b])), _sorted_code_lookup(vm, torch.cat([a, b])))
+    # growth inside the box rebuilds too
+    c = a[:50] + 0.2
+    vm.allocate(c)
+    assert torch.equal(vm.lookup_voxels(c), _sorted_code_lookup(vm, c))
+    # loading a checkpoint and moving devices drop the old grids
+    other = VoxelMap(0.2, seed=1)
+    other.allocate(b)
+    other.index_grid()
+    other.load_state_dict(vm.state_dict())
+    assert torch.equal(other.lookup_voxels(torch.cat([a, b, c])), vm.lookup_voxels(torch.cat([a, b, c])))
+    rep = vm.memory_report()
+    assert rep.index_bytes >= vm.index_grid().nbytes + vm.voxel_codes.numel() * 8
 
 
 # ---------------------------------------------------------------- vertices

@@ -1,0 +1,113 @@
+"""Dense index grid over a voxel map's bounding box: O(1) voxel lookup without Morton codes.
+
+A :class:`VoxelIndexGrid` is a flat ``int32`` table over the box ``[lo - border, hi + border]`` of
+integer *cell* coordinates at octree level ``level`` (a level-``k`` cell is the block of
+``2**k x 2**k x 2**k`` voxels ``floor(ijk / 2**k)``, the Morton parent ``code >> 3k``). Each entry holds a
+value (a voxel index at level 0, 0 = "occupied" for coarser levels) or -1. The ``border`` of -1 cells
+around the occupied box lets a ray walk that ends one cell beyond the box skip per-cell bounds checks.
+
+Grids are immutable once built (never written in place), so a map snapshot may share them.
+
+Example:
+    >>> ijk = torch.tensor([[0, 0, 0], [3, -2, 5]])
+    >>> g = build_index_grid(ijk, torch.arange(2), level=0, border=1, max_cells=1 << 20)
+    >>> g.lookup(torch.tensor([[3, -2, 5], [1, 1, 1]])).tolist()
+    [1, -1]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..errors import ShapeError, ValidationError
+
+__all__ = ["VoxelIndexGrid", "build_index_grid"]
+
+
+@dataclass(frozen=True, eq=False)
+class VoxelIndexGrid:
+    """A dense ``[X, Y, Z]`` table of cell values, flattened row-major (z fastest).
+
+    Attributes:
+        origin: ``[3]`` int64 cell coordinate (at ``level``) of table entry 0, on the table's device.
+        origin_xyz: the same as Python ints.
+        size: ``[3]`` int64 ``(X, Y, Z)`` on the table's device.
+        shape: ``(X, Y, Z)`` cells per axis.
+        level: octree level; a cell covers ``2**level`` voxels per axis.
+        table: ``[X * Y * Z]`` int32 value of each cell, -1 where empty.
+        n_occupied: number of cells that hold a value.
+    """
+
+    origin: torch.Tensor
+    origin_xyz: tuple[int, int, int]
+    size: torch.Tensor
+    shape: tuple[int, int, int]
+    level: int
+    table: torch.Tensor
+    n_occupied: int
+
+    @property
+    def strides(self) -> tuple[int, int, int]:
+        """Flat-index step of one cell along x, y, z."""
+        return (self.shape[1] * self.shape[2], self.shape[2], 1)
+
+    @property
+    def n_cells(self) -> int:
+        return self.shape[0] * self.shape[1] * self.shape[2]
+
+    @property
+    def nbytes(self) -> int:
+        return self.table.numel() * self.table.element_size()
+
+    def flat_index(self, cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``cells [..., 3]`` int64 cell coordinates -> ``(flat [...] int64, inside [...] bool)``.
+
+        ``flat`` is 0 where ``inside`` is False (entry 0 is a border cell, always -1).
+        """
+        if cells.shape[-1:] != (3,):
+            raise ShapeError("cells", tuple(cells.shape), "[..., 3]")
+        rel = cells - self.origin
+        inside = ((rel >= 0) & (rel < self.size)).all(-1)
+        sx, sy, _ = self.strides
+        flat = rel[..., 0] * sx + rel[..., 1] * sy + rel[..., 2]
+        return torch.where(inside, flat, torch.zeros_like(flat)), inside
+
+    def lookup(self, cells: torch.Tensor) -> torch.Tensor:
+        """Value of each cell ``[..., 3]`` (int64) -> ``[...]`` int64, -1 outside the grid or where empty."""
+        flat, inside = self.flat_index(cells)
+        val = self.table[flat].to(torch.int64)
+        return torch.where(inside, val, torch.full_like(val, -1))
+
+
+def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: int, border: int,
+                     max_cells: int) -> VoxelIndexGrid | None:
+    """Dense grid of ``values`` at the level-``level`` cells of ``voxel_coords``; None if too large.
+
+    Args:
+        voxel_coords: ``[M, 3]`` int64 voxel coordinates (M >= 1).
+        values: ``[M]`` integer value per voxel (cells holding several voxels keep one of them).
+        level: octree level of the grid's cells (0 = voxels).
+        border: empty cells added on every side of the occupied box.
+        max_cells: memory budget; None is returned when the grid would have more cells.
+    """
+    if voxel_coords.dim() != 2 or voxel_coords.shape[1] != 3 or voxel_coords.shape[0] == 0:
+        raise ShapeError("voxel_coords", tuple(voxel_coords.shape), "[M >= 1, 3]")
+    if values.shape != voxel_coords.shape[:1]:
+        raise ShapeError("values", tuple(values.shape), f"({voxel_coords.shape[0]},)")
+    if level < 0 or border < 0:
+        raise ValidationError("level/border", f"must be >= 0, got {level}/{border}")
+    cells = torch.div(voxel_coords, 1 << level, rounding_mode="floor")
+    lo = cells.min(0).values - border
+    hi = cells.max(0).values + border
+    size = hi - lo + 1
+    shape = tuple(int(s) for s in size.tolist())
+    if shape[0] * shape[1] * shape[2] > max_cells:
+        return None
+    table = torch.full((shape[0] * shape[1] * shape[2],), -1, dtype=torch.int32, device=voxel_coords.device)
+    sx, sy = shape[1] * shape[2], shape[2]
+    rel = cells - lo
+    table[rel[:, 0] * sx + rel[:, 1] * sy + rel[:, 2]] = values.to(torch.int32)
+    return VoxelIndexGrid(origin=lo, origin_xyz=tuple(int(c) for c in lo.tolist()), size=size, shape=shape,
+                          level=level, table=table, n_occupied=int((table >= 0).sum()))
