@@ -193,13 +193,24 @@ def test_run_py_end_to_end(tmp_path):
     assert base["memory"]["increase_mb"] >= 0 and base["fps"] > 0
 
 
-def test_run_py_refuses_unimplemented_method(capsys):
+def test_run_py_refuses_unknown_method(capsys):
     from bench.run import main
 
     with pytest.raises(SystemExit) as info:
-        main(["--synthetic", "--method", "baseline", "voxfusion"])
+        main(["--synthetic", "--method", "baseline", "nope"])
     assert info.value.code == 2
-    assert "voxfusion" in capsys.readouterr().err
+    assert "nope" in capsys.readouterr().err
+
+
+def test_run_py_runs_voxfusion_beside_the_baseline(tmp_path):
+    from bench.run import main
+
+    main(["--synthetic", "--frames", "3", "--width", "48", "--height", "36", "--method", "voxfusion",
+          "voxfusion-map", "--vf-config", "cpu-small", "--vf-set", "mapping.first_frame_iters=5", "mapping.iters=2",
+          "tracking.iters=3", "mesh_res=2", "--mesh-samples", "2000", "--out", str(tmp_path), "--no-progress"])
+    result = json.loads(next(tmp_path.glob("*.json")).read_text())
+    assert set(result["methods"]) == {"voxfusion", "voxfusion-map"}
+    assert result["methods"]["voxfusion"]["ate_aligned"]["rmse_m"] < 0.05
 
 
 def test_real_tum_capture(shared_data):
