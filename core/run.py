@@ -32,7 +32,7 @@ from .slam_config import VoxFusionConfig
 from .trajectory import Trajectory, write_tum_trajectory
 from .voxel_export import export_voxels
 
-__all__ = ["RunResult", "run_capture", "reference_trajectory", "evaluate_run", "peak_memory_mb"]
+__all__ = ["RunResult", "run_capture", "reference_trajectory", "evaluate_run", "evaluate_mesh", "peak_memory_mb"]
 
 
 @dataclass
@@ -77,16 +77,22 @@ def evaluate_run(trajectory: Trajectory, mesh: trimesh.Trimesh, capture: Capture
         for align in ("se3", "none"):
             ate = compute_ate(trajectory, ref, TrajectoryEvalConfig(align=align, max_diff_s=1e-3))
             metrics[f"ate_{align}"] = ate.summary()
+    metrics.update(evaluate_mesh(mesh, capture, frames, mesh_samples))
+    return metrics
+
+
+def evaluate_mesh(mesh: trimesh.Trimesh, capture: Capture, frames: int, mesh_samples: int = 200_000) -> dict:
+    """Exact accuracy / completion against the capture's GT mesh (``{}`` without one): ``mesh_full``
+    against the whole GT, ``mesh_observed`` against the GT culled to what the cameras saw (<= 200 views)."""
     gt = getattr(capture, "gt_mesh", None)
     if gt is None and capture.gt_mesh_path is not None:
         gt = load_mesh(capture.gt_mesh_path)
-    if gt is not None and len(mesh.faces):
-        cfg = MeshEvalConfig(n_samples=mesh_samples)
-        step = max(1, frames // 200)
-        views = views_from_frames(list(capture.frames(0, frames, step)))
-        metrics["mesh_full"] = compute_mesh_metrics(mesh, gt, cfg)
-        metrics["mesh_observed"] = compute_mesh_metrics(mesh, gt, cfg, views=views)
-    return metrics
+    if gt is None or not len(mesh.faces):
+        return {}
+    cfg = MeshEvalConfig(n_samples=mesh_samples)
+    views = views_from_frames(list(capture.frames(0, frames, max(1, frames // 200))))
+    return {"mesh_full": compute_mesh_metrics(mesh, gt, cfg),
+            "mesh_observed": compute_mesh_metrics(mesh, gt, cfg, views=views)}
 
 
 def run_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path | None = None,

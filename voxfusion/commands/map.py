@@ -18,29 +18,12 @@ import typer
 
 from voxfusion.core.config import config_to_dict
 from voxfusion.core.datasets import open_capture
-from voxfusion.core.eval import MeshEvalConfig, compute_mesh_metrics, format_table, load_mesh, write_json
-from voxfusion.core.eval.mesh import views_from_frames
+from voxfusion.core.eval import format_table, write_json
 from voxfusion.core.reconstruct import map_capture
+from voxfusion.core.run import evaluate_mesh
 from voxfusion.core.slam_config import load_preset
 
-__all__ = ["register", "evaluate_mesh_against_gt"]
-
-
-def evaluate_mesh_against_gt(mesh, capture, n_samples: int = 200_000, max_views: int = 200) -> dict:  # noqa: ANN001
-    """Exact accuracy / completion of ``mesh`` against the capture's GT mesh: against the whole GT and
-    against the GT culled to what the capture's cameras observed (frustum + depth test)."""
-    gt = getattr(capture, "gt_mesh", None)
-    if gt is None and capture.gt_mesh_path is not None:
-        gt = load_mesh(capture.gt_mesh_path)
-    if gt is None:
-        return {}
-    cfg = MeshEvalConfig(n_samples=n_samples)
-    step = max(1, len(capture) // max_views)
-    views = views_from_frames(list(capture.frames(0, None, step)))
-    return {
-        "full": compute_mesh_metrics(mesh, gt, cfg),
-        "observed": compute_mesh_metrics(mesh, gt, cfg, views=views),
-    }
+__all__ = ["register"]
 
 
 def register(app: typer.Typer) -> None:
@@ -62,7 +45,7 @@ def register(app: typer.Typer) -> None:
         cfg = load_preset(config, overrides)
         cap = open_capture(capture, stride=stride, limit=max_frames)
         result = map_capture(cap, cfg, out)
-        metrics = evaluate_mesh_against_gt(result.mesh, cap, eval_samples)
+        metrics = evaluate_mesh(result.mesh, cap, len(cap), eval_samples)
         summary = result.timing_summary()
         mem = result.mapper.voxels.memory_report(result.mapper.decoder)
         write_json(out / "metrics.json", {
@@ -75,8 +58,9 @@ def register(app: typer.Typer) -> None:
                  {"metric": "embeddings [MB]", "value": mem.embedding_bytes / 1e6},
                  {"metric": "decoder [MB]", "value": mem.decoder_bytes / 1e6}]
         for name, m in metrics.items():
-            rows += [{"metric": f"accuracy [cm] ({name} GT)", "value": 100 * m.accuracy_m},
-                     {"metric": f"completion [cm] ({name} GT)", "value": 100 * m.completion_m},
-                     {"metric": f"completion ratio < 5 cm [%] ({name} GT)", "value": 100 * m.completion_ratio}]
+            gt = name.removeprefix("mesh_")
+            rows += [{"metric": f"accuracy [cm] ({gt} GT)", "value": 100 * m.accuracy_m},
+                     {"metric": f"completion [cm] ({gt} GT)", "value": 100 * m.completion_m},
+                     {"metric": f"completion ratio < 5 cm [%] ({gt} GT)", "value": 100 * m.completion_ratio}]
         typer.echo(format_table(rows))
         typer.echo(f"outputs in {out}")
