@@ -6,6 +6,8 @@ timestamps and poses, the trajectory and the full config; loading it reproduces 
 
 from __future__ import annotations
 
+import dataclasses
+
 import os
 import tempfile
 from dataclasses import dataclass
@@ -99,7 +101,10 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Loa
             "checkpoint.version",
             f"{path} has version {state.get('version')!r}; this build reads {CHECKPOINT_VERSION}")
     config = config_from_dict(VoxFusionConfig, state["config"])
-    mapper = Mapper(config.voxel_size_m, config.field, config.render, config.loss, config.mapping,
+    # a depth-only capture's decoder has no colour head (make_mapper drops it); rebuild the same shape
+    has_color = any(k.startswith("color_net.") for k in state["decoder"])
+    field_config = dataclasses.replace(config.field, use_color=config.field.use_color and has_color)
+    mapper = Mapper(config.voxel_size_m, field_config, config.render, config.loss, config.mapping,
                     device=device, seed=config.seed)
     mapper.voxels = VoxelMap.from_state_dict(state["voxels"], device=device, seed=config.seed)
     mapper.decoder.load_state_dict(state["decoder"])

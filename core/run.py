@@ -23,6 +23,7 @@ from .checkpoint import save_checkpoint
 from .config import config_to_dict
 from .datasets.frame import Capture
 from .errors import ValidationError
+from .eval.consistency import depth_consistency
 from .eval.mesh import MeshEvalConfig, compute_mesh_metrics, load_mesh, views_from_frames
 from .eval.report import write_json
 from .eval.trajectory import TrajectoryEvalConfig, compute_ate
@@ -77,8 +78,26 @@ def evaluate_run(trajectory: Trajectory, mesh: trimesh.Trimesh, capture: Capture
         for align in ("se3", "none"):
             ate = compute_ate(trajectory, ref, TrajectoryEvalConfig(align=align, max_diff_s=1e-3))
             metrics[f"ate_{align}"] = ate.summary()
+        if len(trajectory) == len(ref) == frames:  # every frame has a pose (offline runs)
+            metrics["depth_consistency"] = compare_depth_consistency(capture, trajectory, ref)
     metrics.update(evaluate_mesh(mesh, capture, frames, mesh_samples))
     return metrics
+
+
+def compare_depth_consistency(capture: Capture, estimate: Trajectory, reference: Trajectory) -> dict:
+    """Multi-view depth disagreement (cm, per frame gap; lower is more self-consistent) of the estimated
+    and the reference trajectory over the same frames: tells which is closer to the truth when the
+    reference is itself an estimate (ARKit poses)."""
+    n = len(estimate)
+    gaps = tuple(g for g in (15, 60, 240) if g < n) or (max(1, n // 3),)
+
+    def load(i: int) -> tuple[np.ndarray, np.ndarray]:
+        f = capture[i]
+        return f.depth_m, f.K
+
+    every = max(1, n // 50)
+    return {name: depth_consistency(load, traj.T_world_cam, gaps, every).as_dict()
+            for name, traj in (("estimate", estimate), ("reference", reference))}
 
 
 def evaluate_mesh(mesh: trimesh.Trimesh, capture: Capture, frames: int, mesh_samples: int = 200_000) -> dict:
@@ -149,6 +168,7 @@ def _frame_rows(slam: SlamSystem) -> list[dict]:
             "index": r.index, "timestamp_s": r.timestamp_s, "lost": r.lost, "keyframe": r.keyframe is not None,
             "tracking_ms": t.time_ms if t else None, "tracking_iters": t.iterations if t else 0,
             "tracking_loss": t.loss if t else None, "valid_rays": t.valid_rays if t else None,
+            "depth_residual_m": t.depth_residual_m if t else None,
             "lost_reason": t.reason if t else "",
             "mapping_ms": m.time_ms if m else None, "mapping_iters": m.iterations if m else 0,
             "mapping_loss": m.loss if m else None,

@@ -144,6 +144,7 @@ class SlamSystem:
         self._latencies: deque[float] = deque(maxlen=100)
         self._streams: dict[str, torch.cuda.Stream] = {}
         self._device_poses: dict[int, np.ndarray] = {}
+        self._good_tail: deque[FrameRecord] = deque(maxlen=2)  # the last two frames not lost, for priors
 
     # ------------------------------------------------------------------ shared helpers
     def _init_engine(self, frame: RGBDFrame) -> None:
@@ -167,15 +168,21 @@ class SlamSystem:
             return frame.T_world_cam_device.copy()
         return np.eye(4)
 
-    def _prior(self, frame: RGBDFrame) -> np.ndarray:
-        good = [r for r in self.records[-8:] if not r.lost]
+    def _prior(self, frame: RGBDFrame) -> tuple[np.ndarray, bool]:
+        """Prior pose from the last two frames that were not lost (however long ago), so a run of lost
+        frames keeps chaining from the last good pose (with the device's relative motion when frames carry
+        one) instead of jumping to an absolute pose. Returns the pose and whether device poses gave it."""
+        good = list(self._good_tail)
         if not good:
-            return self._first_pose(frame)
+            return self._first_pose(frame), False
         prev = good[-1]
         prev2 = good[-2] if len(good) > 1 else None
         dev_prev = self._device_pose_of(prev.index)
-        return predict_pose(prev.current_pose(), None if prev2 is None else prev2.current_pose(),
-                            self.config.tracking, dev_prev, frame.T_world_cam_device)
+        dev_cur = frame.T_world_cam_device
+        from_device = self.config.tracking.use_device_prior and dev_prev is not None and dev_cur is not None
+        T = predict_pose(prev.current_pose(), None if prev2 is None else prev2.current_pose(),
+                         self.config.tracking, dev_prev, dev_cur)
+        return T, from_device
 
     def _device_pose_of(self, index: int) -> np.ndarray | None:
         return self._device_poses.get(index)
@@ -207,12 +214,12 @@ class SlamSystem:
             T = self._first_pose(frame)
             rec = FrameRecord(frame.index, frame.timestamp_s, T, received_at=received_at)
         else:
-            prior = self._prior(frame)
+            prior, prior_from_device = self._prior(frame)
             if data.n_valid == 0:
                 res = None
                 rec = FrameRecord(frame.index, frame.timestamp_s, prior, lost=True, received_at=received_at)
             else:
-                res = self.tracker.track(data, prior)
+                res = self.tracker.track(data, prior, prior_from_device)
                 rec = FrameRecord(frame.index, frame.timestamp_s, res.T_world_cam, lost=res.lost, tracking=res,
                                   received_at=received_at)
         rec.data = None if rec.lost else data
@@ -225,6 +232,8 @@ class SlamSystem:
         self._latencies.append((rec.tracked_at - received_at) * 1e3)
         with self._lock:
             self.records.append(rec)
+        if not rec.lost:
+            self._good_tail.append(rec)
         if self.on_pose is not None:
             self.on_pose(rec)
         return rec

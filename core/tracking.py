@@ -7,9 +7,12 @@ renderer on ``rays`` pixels sampled each iteration where depth is valid (and con
 Priors (:func:`predict_pose`): constant velocity (default), the paper's zero motion, or, when frames
 carry a device pose (ARKit), the device's relative motion since the previous frame.
 
-Robustness: rays whose depth residual exceeds ``outlier_k x median`` are dropped from the depth and
-SDF terms; a frame with too few valid rays, or whose loss spikes above ``loss_spike_factor`` times the
-median of recent frames, is marked lost: its pose is the prior and it is never fused into the map.
+Robustness: rays whose depth residual exceeds ``outlier_k x median`` (at most ``outlier_max_m``) are
+dropped from the depth and SDF terms; a frame is marked lost (its pose is the prior, and it is never fused into the map) when too few
+rays hit the map, or when its loss spikes: the loss exceeds ``loss_spike_factor`` times the median of recent
+tracked frames AND the median depth residual exceeds ``spike_residual_m`` (metres). The second condition
+keeps a view that turns towards new, far or barely mapped surfaces (whose SDF terms are large while the
+pose is fine, common with noisy LiDAR depth) from counting as a tracking failure.
 """
 
 from __future__ import annotations
@@ -46,6 +49,12 @@ class TrackingConfig:
     """Iterations always run before early stopping is considered."""
     lr: float = 1e-2
     """Adam learning rate on the 6-vector (about metres / radians per iteration) at the first iteration."""
+    lr_device_prior: float = 1e-3
+    """Learning rate used instead of ``lr`` when the prior came from device poses: visual-inertial relative
+    motion (ARKit) is good to about a millimetre between frames, and Adam's steps (about the learning rate
+    each) would otherwise throw the pose centimetres away and leave it off by about the last step."""
+    lr_rot_ratio: float = 1.0
+    """Rotation steps are this times the translation steps (1: the same, in radians and metres)."""
     lr_final_ratio: float = 0.1
     """The learning rate decays exponentially to ``lr * lr_final_ratio`` at the last iteration."""
     converge_tol: float = 2e-4
@@ -55,12 +64,29 @@ class TrackingConfig:
     """Prior without a device pose: constant velocity, or the paper's zero-motion model."""
     use_device_prior: bool = True
     """Use the device's relative motion (e.g. ARKit) as the prior when frames carry device poses."""
+    device_prior_weight: float = 0.0
+    """Weight of a soft prior that keeps the pose near the device prior (0: the device motion only
+    initialises the optimisation, as in the paper's motion models). When > 0 and the prior came from device
+    poses, tracking adds ``weight x (|dt| / device_prior_sigma_m)^2 + weight x (|dr| / sigma)^2`` for the
+    correction ``(dt, dr)`` away from the prior: short-term visual-inertial motion (ARKit) is far more
+    precise than alignment to a coarse map, while the map still pulls accumulated drift back."""
+    device_prior_sigma_m: float = 0.01
+    """Translation scale of the device-prior term (metres)."""
+    device_prior_sigma_deg: float = 0.5
+    """Rotation scale of the device-prior term (degrees)."""
     outlier_k: float = 5.0
     """Rays with |rendered - observed depth| > outlier_k x median residual are dropped."""
+    outlier_max_m: float = 0.3
+    """...and so are rays whose residual exceeds this (metres) whatever the median: where most of a view
+    disagrees with the map (a surface the map has not yet carved away, a region not yet mapped) the median
+    itself is large, and the frame must be tracked on the rays that do agree."""
     min_valid_fraction: float = 0.1
-    """A frame is lost when fewer than this fraction of rays hit a rendered surface."""
+    """A frame is lost when fewer than this fraction of rays hit a rendered surface and are inliers."""
     loss_spike_factor: float = 10.0
-    """A frame is lost when its loss exceeds this times the median loss of recent tracked frames."""
+    """Loss-spike rule, first condition: the loss exceeds this times the median loss of recent tracked frames."""
+    spike_residual_m: float = 0.1
+    """Loss-spike rule, second condition: the median |rendered - observed| depth over the rays that hit the
+    map exceeds this (metres), i.e. the geometry really disagrees at the tracked pose."""
     t_far_margin_m: float = 0.3
     """Samples stop this far (camera z) behind the observed depth."""
     loss: LossConfig = field(default_factory=LossConfig)
@@ -70,8 +96,12 @@ class TrackingConfig:
         for name in ("rays", "iters", "patience"):
             if getattr(self, name) < 1:
                 raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
-        if not self.lr > 0:
-            raise ConfigError("lr", f"must be > 0, got {self.lr}")
+        if not (self.lr > 0 and self.lr_device_prior > 0 and self.lr_rot_ratio > 0):
+            raise ConfigError("lr", "lr, lr_device_prior and lr_rot_ratio must be > 0")
+        if not (self.device_prior_weight >= 0 and self.device_prior_sigma_m > 0 and self.device_prior_sigma_deg > 0):
+            raise ConfigError("device_prior_weight", "weight must be >= 0 and both sigmas > 0")
+        if not self.outlier_max_m > 0:
+            raise ConfigError("outlier_max_m", f"must be > 0, got {self.outlier_max_m}")
         if not 0 <= self.min_valid_fraction < 1:
             raise ConfigError("min_valid_fraction", "must be in [0, 1)")
 
@@ -87,6 +117,8 @@ class TrackResult:
     loss: float
     iterations: int
     valid_rays: int
+    depth_residual_m: float
+    """Median |rendered - observed| depth (metres) over the rays that hit the map, at the last iteration."""
     lost: bool
     reason: str
     time_ms: float
@@ -118,8 +150,12 @@ class Tracker:
         """Swap in a new frozen map snapshot (a reference assignment; the tracker never waits)."""
         self.voxels, self.decoder = voxels, decoder
 
-    def track(self, frame: FrameData, T_prior: np.ndarray) -> TrackResult:
-        """Optimise the pose of ``frame`` starting from ``T_prior``."""
+    def track(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool = False) -> TrackResult:
+        """Optimise the pose of ``frame`` starting from ``T_prior``.
+
+        ``prior_from_device``: ``T_prior`` came from device poses, so the soft device prior applies (when
+        ``device_prior_weight > 0``).
+        """
         t0 = time.perf_counter()
         cfg = self.config
         voxels, decoder = self.voxels, self.decoder
@@ -127,15 +163,22 @@ class Tracker:
             raise ConfigError("map", "tracker has no map snapshot yet (the first frame initialises the map)")
         dev = voxels.device
         T0 = torch.as_tensor(T_prior, dtype=torch.float64, device=dev)
-        xi = torch.zeros(6, dtype=torch.float64, device=dev, requires_grad=True)
-        opt = torch.optim.Adam([xi], lr=cfg.lr)
+        # Adam moves every coordinate by about the learning rate per step; optimise z with xi = z * scale so
+        # that the rotation steps are lr_rot_ratio times the translation steps (radians vs metres)
+        scale = torch.tensor([1.0] * 3 + [cfg.lr_rot_ratio] * 3, dtype=torch.float64, device=dev)
+        z = torch.zeros(6, dtype=torch.float64, device=dev, requires_grad=True)
+        lr = cfg.lr_device_prior if prior_from_device else cfg.lr
+        opt = torch.optim.Adam([z], lr=lr)
         still = 0
-        loss_val, valid, it = float("nan"), 0, 0
+        loss_val, valid, it, resid_m = float("nan"), 0, 0, float("nan")
+        prior_weight = cfg.device_prior_weight if prior_from_device else 0.0
+        sigma_rad = np.deg2rad(cfg.device_prior_sigma_deg)
         decay = cfg.lr_final_ratio ** (1.0 / max(cfg.iters - 1, 1))
         for it in range(1, cfg.iters + 1):
             for group in opt.param_groups:
-                group["lr"] = cfg.lr * decay ** (it - 1)
+                group["lr"] = lr * decay ** (it - 1)
             px = sample_pixels(frame, cfg.rays, self.generator)
+            xi = z * scale
             T = perturb_right(T0, xi)
             o, d = camera_rays(frame.K, T, px.uv)
             out = render_rays(voxels, decoder, o, d, self.render_config, training=False,
@@ -144,35 +187,42 @@ class Tracker:
                 ok = out.hit & out.surface
                 resid = (out.depth.detach() - px.depth_m).abs()
                 med = resid[ok].median() if ok.any() else resid.new_tensor(0.0)
-                inlier = ok & (resid <= cfg.outlier_k * med.clamp(min=1e-3))
+                resid_m = float(med)
+                inlier = ok & (resid <= (cfg.outlier_k * med.clamp(min=1e-3)).clamp(max=cfg.outlier_max_m))
             valid = int(inlier.sum())
             if valid < max(8, cfg.min_valid_fraction * cfg.rays):
                 break
             depth_gt = torch.where(inlier, px.depth_m, torch.zeros_like(px.depth_m))
             color_gt = px.color if self.use_color else None
             terms = compute_losses(out, depth_gt, color_gt, cfg.loss)
+            total = terms.total
+            if prior_weight > 0:
+                total = total + prior_weight * ((xi[:3] / cfg.device_prior_sigma_m).square().sum()
+                                                + (xi[3:] / sigma_rad).square().sum()).to(total.dtype)
             opt.zero_grad(set_to_none=True)
-            terms.total.backward()
+            total.backward()
             before = xi.detach().clone()
             opt.step()
+            xi = z.detach() * scale
             loss_val = float(terms.total.detach())
             step = (xi.detach() - before).abs()
             still = still + 1 if float(step.max()) < cfg.converge_tol else 0
             if it >= cfg.min_iters and still >= cfg.patience:
                 break
         with torch.no_grad():
-            T_est = nearest_rigid(perturb_right(T0, xi).cpu().numpy())
+            T_est = nearest_rigid(perturb_right(T0, z * scale).cpu().numpy())
         lost, reason = False, ""
         if valid < max(8, cfg.min_valid_fraction * cfg.rays):
             lost, reason = True, f"too few valid rays ({valid} of {cfg.rays})"
         elif not np.isfinite(loss_val) or not np.all(np.isfinite(T_est)):
             lost, reason = True, "non-finite loss or pose"
-        elif len(self._recent_losses) >= 5 and loss_val > cfg.loss_spike_factor * float(
-                np.median(self._recent_losses)):
-            lost, reason = True, f"loss spike ({loss_val:.4g} vs median {np.median(self._recent_losses):.4g})"
+        elif (len(self._recent_losses) >= 5 and loss_val > cfg.loss_spike_factor * float(
+                np.median(self._recent_losses)) and resid_m > cfg.spike_residual_m):
+            lost, reason = True, (f"loss spike ({loss_val:.4g} vs median {np.median(self._recent_losses):.4g}, "
+                                  f"depth residual {resid_m * 100:.1f} cm)")
         if lost:
             T_est = np.asarray(T_prior, dtype=np.float64).copy()
         else:
             self._recent_losses.append(loss_val)
         return TrackResult(frame.index, frame.timestamp_s, T_est, np.asarray(T_prior, dtype=np.float64), loss_val,
-                           it, valid, lost, reason, (time.perf_counter() - t0) * 1e3)
+                           it, valid, resid_m, lost, reason, (time.perf_counter() - t0) * 1e3)

@@ -1,6 +1,7 @@
-"""Evaluation: trajectory error (ATE / RPE), mesh accuracy / completion / F-score, depth L1, and the
-table / JSON helpers the CLI and the benchmarks share."""
+"""Evaluation: trajectory error (ATE / RPE), multi-view depth consistency, mesh accuracy / completion /
+F-score, depth L1, and the table / JSON helpers the CLI and the benchmarks share."""
 
+from .consistency import DepthConsistency, depth_consistency, pair_disagreement
 from .depth import DepthL1Result, depth_l1
 from .mesh import (
     CameraView,
@@ -27,6 +28,9 @@ from .trajectory import (
 )
 
 __all__ = [
+    "DepthConsistency",
+    "depth_consistency",
+    "pair_disagreement",
     "AlignMode",
     "ATEResult",
     "RPEResult",

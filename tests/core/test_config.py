@@ -36,6 +36,13 @@ def test_int_promotes_to_float_but_not_reverse():
         apply_overrides(Outer(), ["inner.iters=1.5"])
 
 
+def test_exponent_without_dot_is_a_number():
+    # YAML 1.1 reads "1e6" as a string; a float field takes it as the number the user meant
+    assert apply_overrides(Outer(), ["inner.lr=1e6"]).inner.lr == 1e6
+    with pytest.raises(ConfigError, match="inner.lr"):
+        apply_overrides(Outer(), ["inner.lr=fast"])
+
+
 @pytest.mark.parametrize(
     "items, key",
     [(["inner.nope=1"], "inner.nope"), (["inner.mode=c"], "inner.mode"), (["novalue"], "novalue")],
@@ -53,3 +60,12 @@ def test_missing_file(tmp_path):
 
 def test_parse_overrides_nested():
     assert parse_overrides(["a.b=1", "a.c=true", "d=hi"]) == {"a": {"b": 1, "c": True}, "d": "hi"}
+
+
+def test_every_shipped_preset_loads():
+    from voxfusion.core.slam_config import CONFIG_DIR, load_preset
+
+    names = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+    assert {"default", "cpu-small", "iphone", "iphone-small", "paper"} <= set(names)
+    for name in names:
+        load_preset(name)

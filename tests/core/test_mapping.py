@@ -7,6 +7,7 @@ import trimesh
 
 from voxfusion.core.checkpoint import load_checkpoint, save_checkpoint
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
+from voxfusion.core.datasets.transforms import TransformedCapture
 from voxfusion.core.errors import CaptureError
 from voxfusion.core.eval.mesh import MeshEvalConfig, compute_mesh_metrics, views_from_frames
 from voxfusion.core.framedata import frame_to_device
@@ -63,6 +64,18 @@ def test_checkpoint_round_trip_reproduces_mesh_exactly(tiny_run, tmp_path):
     p = save_checkpoint(tmp_path / "again.pt", loaded.mapper, loaded.config)
     twice = load_checkpoint(p)
     assert torch.equal(twice.mapper.voxels.embeddings, loaded.mapper.voxels.embeddings)
+
+
+def test_depth_only_checkpoint_round_trip(tmp_path):
+    """A depth-only capture's map has no colour head; its checkpoint must load (the server resumes from it)."""
+    cap = SyntheticCapture(SyntheticConfig(n_frames=2, width=48, height=36, seed=4))
+    depth_only = TransformedCapture(cap, lambda f: f.with_(color=None))
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=2", "mapping.iters=1"])
+    run = map_capture(depth_only, cfg, tmp_path, progress=False)
+    assert run.mapper.decoder.color_net is None
+    loaded = load_checkpoint(run.out_dir / "checkpoint.pt")
+    assert loaded.mapper.decoder.color_net is None
+    np.testing.assert_array_equal(loaded.mapper.extract_mesh(cfg.mesh_res).vertices, run.mesh.vertices)
 
 
 def test_corrupt_checkpoint_is_a_clear_error(tmp_path):
