@@ -7,7 +7,6 @@ timestamps and poses, the trajectory and the full config; loading it reproduces 
 from __future__ import annotations
 
 import dataclasses
-
 import os
 import tempfile
 from dataclasses import dataclass

@@ -8,11 +8,16 @@ Priors (:func:`predict_pose`): constant velocity (default), the paper's zero mot
 carry a device pose (ARKit), the device's relative motion since the previous frame.
 
 Robustness: rays whose depth residual exceeds ``outlier_k x median`` (at most ``outlier_max_m``) are
-dropped from the depth and SDF terms; a frame is marked lost (its pose is the prior, and it is never fused into the map) when too few
-rays hit the map, or when its loss spikes: the loss exceeds ``loss_spike_factor`` times the median of recent
-tracked frames AND the median depth residual exceeds ``spike_residual_m`` (metres). The second condition
-keeps a view that turns towards new, far or barely mapped surfaces (whose SDF terms are large while the
-pose is fine, common with noisy LiDAR depth) from counting as a tracking failure.
+dropped from the depth and SDF terms. A frame is marked lost (its pose is the prior, and it is never fused
+into the map) when too few rays hit the map and agree with it, or when its loss spikes: the loss exceeds
+``loss_spike_factor`` times the median of recent tracked frames AND the median depth residual exceeds
+``spike_residual_m`` (metres). The second condition keeps a view that turns towards new, far or barely
+mapped surfaces (whose SDF terms are large while the pose is fine, common with noisy LiDAR depth) from
+counting as a tracking failure.
+
+Device priors: with ARKit-style poses the prior is already good to about a millimetre, so tracking takes
+smaller steps (``lr_device_prior``) and may add a soft term holding the pose near it
+(``device_prior_weight``).
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ class DepthConsistency:
 
     def as_dict(self) -> dict[str, float]:
         """``{"gap_15_cm": 0.94, ...}`` for reports."""
-        return {f"gap_{g}_cm": round(d * 100, 3) for g, d in zip(self.gaps, self.disagreement_m)}
+        return {f"gap_{g}_cm": round(d * 100, 3) for g, d in zip(self.gaps, self.disagreement_m, strict=True)}
 
 
 def pair_disagreement(depth_i: np.ndarray, K_i: np.ndarray, T_i: np.ndarray, depth_j: np.ndarray,

@@ -56,7 +56,7 @@ def register(app: typer.Typer) -> None:
                 rows.append({"metric": f"ATE rmse [cm] ({key[4:]} align)", "value": ate_cm})
         for name, gaps in result.metrics.get("depth_consistency", {}).items():
             rows.append({"metric": f"depth disagreement [cm] ({name} poses)",
-                         "value": " / ".join(f"{v:.2f}" for v in gaps.values()) + f"  at frame gaps "
+                         "value": " / ".join(f"{v:.2f}" for v in gaps.values()) + "  at frame gaps "
                          + " / ".join(k.split("_")[1] for k in gaps)})
         for key in ("mesh_full", "mesh_observed"):
             if key in result.metrics:

@@ -34,7 +34,7 @@ def test_exact_poses_agree_and_perturbed_poses_do_not(capture):
         xi = np.concatenate([rng.normal(0, 0.02, 3), rng.normal(0, np.deg2rad(1.0), 3)])
         noisy[i] = noisy[i] @ se3_exp(torch.from_numpy(xi)).numpy()
     worse = depth_consistency(load(capture), noisy, gaps=(1, 4), every=1)
-    for a, b in zip(exact.disagreement_m, worse.disagreement_m):
+    for a, b in zip(exact.disagreement_m, worse.disagreement_m, strict=True):
         assert b > 2 * a, (exact, worse)
     assert set(worse.as_dict()) == {"gap_1_cm", "gap_4_cm"}
 
