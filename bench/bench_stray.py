@@ -80,7 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     print(format_table(rows))
     gaps = next((list(r["depth_disagreement_cm"]["estimate"]) for r in runs if r["depth_disagreement_cm"]), [])
     print(f"(depth disagreement at frame gaps {', '.join(g.split('_')[1] for g in gaps)}; lower is more consistent)")
-    suffix = "" if args.max_frames is None else f"_{args.max_frames}f"
+    suffix = ("" if args.max_frames is None else f"_{args.max_frames}f") + (
+        "" if args.prior == "both" else f"_prior_{args.prior}")
     path = write_json(args.out / f"stray_iphone_{args.preset}{suffix}.json", {
         "benchmark": "stray_iphone_slam", "capture": str(args.capture.name), "preset": args.preset,
         "overrides": args.overrides, "date": datetime.now(UTC).isoformat(timespec="seconds"),

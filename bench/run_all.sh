@@ -13,9 +13,6 @@ $PY bench/run.py --capture ../shared/data/tum_fr1_desk_9frames --method baseline
 $PY bench/run.py --capture ../shared/data/sevenscenes_redkitchen --max-frames 300 --method baseline voxfusion \
     --vf-config "$P" --vf-set mapping.max_depth_m=4.0 loss.w_color=0.1 --name "sevenscenes_300f_$P" --no-progress \
     > bench/logs/sevenscenes.log 2>&1
-$PY bench/run.py --capture ../shared/data/stray_iphone_lidar --method baseline voxfusion --vf-config "$P" \
-    --vf-set mapping.min_confidence=1 mapping.max_depth_m=5.0 --name "stray_iphone_devprior_$P" --no-progress \
-    > bench/logs/stray_prior.log 2>&1
-$PY bench/run.py --capture ../shared/data/stray_iphone_lidar --method voxfusion --vf-config "$P" \
-    --vf-set mapping.min_confidence=1 mapping.max_depth_m=5.0 tracking.use_device_prior=false \
-    --name "stray_iphone_noprior_$P" --no-progress > bench/logs/stray_noprior.log 2>&1
+# the real iPhone capture, all 942 frames, with and without the ARKit prior (iphone-small on CPU, iphone on a GPU)
+if [ "$P" = "cpu-small" ]; then IP=iphone-small; else IP=iphone; fi
+$PY bench/bench_stray.py --preset "$IP" > bench/logs/stray.log 2>&1
