@@ -24,7 +24,6 @@ Writes ``bench/results/codec.json`` (with :func:`bench.machine.machine_info`).
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -41,6 +40,7 @@ import numpy as np  # noqa: E402
 
 from bench.machine import machine_info  # noqa: E402
 from voxfusion.core.datasets.frame import RGBDFrame  # noqa: E402
+from voxfusion.core.eval.report import write_json  # noqa: E402
 from voxfusion.core.geometry import scale_intrinsics  # noqa: E402
 from voxfusion.proto import DEPTH_ENCODINGS, WireIntrinsics, decode_frame, encode_frame  # noqa: E402
 from voxfusion.proto.container import unpack_message  # noqa: E402
@@ -220,8 +220,7 @@ def main(argv: list[str] | None = None) -> int:
         "machine": machine,
         "rows": [asdict(r) for r in rows],
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(f"\nwrote {args.out}")
     return 0
 

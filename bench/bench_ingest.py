@@ -61,6 +61,7 @@ from voxfusion.clients import Client  # noqa: E402
 from voxfusion.clients.base import BaseClient  # noqa: E402
 from voxfusion.clients.zenoh_client import ZenohClient  # noqa: E402
 from voxfusion.clients.zenoh_keys import session_key  # noqa: E402
+from voxfusion.core.eval.report import write_json  # noqa: E402
 from voxfusion.proto import encode_frame  # noqa: E402
 
 TINY = ["mapping.rays_per_frame=128", "tracking.rays=128", "tracking.iters=10", "mapping.first_frame_iters=30",
@@ -370,8 +371,7 @@ def main(argv: list[str] | None = None) -> int:
         "throughput": [asdict(r) for r in throughput],
         "latency": [asdict(r) for r in latency],
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(f"\nwrote {args.out}")
     return 0
 

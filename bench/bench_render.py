@@ -28,7 +28,6 @@ reports medians of wall-clock and of the process CPU time (robust to waiting for
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -47,6 +46,7 @@ import voxfusion.core.raycast as raycast  # noqa: E402
 import voxfusion.core.render as render  # noqa: E402
 from bench.machine import machine_info  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
+from voxfusion.core.eval.report import write_json  # noqa: E402
 from voxfusion.core.field import FieldConfig  # noqa: E402
 from voxfusion.core.framedata import frame_to_device, sample_pixels  # noqa: E402
 from voxfusion.core.losses import LossConfig  # noqa: E402
@@ -236,8 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         "machine": machine,
         "rows": [dict(asdict(r), speedup=round(r.speedup, 3), speedup_cpu=round(r.speedup_cpu, 3)) for r in rows],
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(f"\nwrote {args.out}")
     return 0
 

@@ -50,7 +50,7 @@ from websockets.sync.client import connect  # noqa: E402
 
 from bench.machine import machine_info  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
-from voxfusion.core.eval import format_table  # noqa: E402
+from voxfusion.core.eval import format_table, write_json  # noqa: E402
 from voxfusion.proto import MEDIA_TYPE, WireIntrinsics, encode_frame  # noqa: E402
 
 RATE_FPS = 5.0
@@ -305,8 +305,7 @@ def main(argv: list[str] | None = None) -> int:
                   "intrinsics_for": "640x480", "mean_bytes": mean_bytes},
         "ingest": ingest, "latency": latency, "sessions_held_at_5fps": capacity,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     print(f"wrote {args.out}")
     return 0
 
