@@ -18,7 +18,11 @@ Threads and order (nothing slow ever runs on a zenoh thread):
   and calls ``manager.submit_frame_bytes`` (decode, validate, durable record, enqueue: the HTTP path).
   When the engine's own queue is full (429) the worker waits and retries (up to ``queue_full_retry_s``),
   which stalls only that session. A ``get`` is answered with ``FrameAccepted`` JSON once recorded; a
-  ``put`` is acknowledged on ``sessions/<id>/acks``.
+  ``put`` is acknowledged on ``sessions/<id>/acks``. Acks published by that worker use congestion control
+  ``BLOCK`` (an ack is never silently dropped; a slow ack subscriber stalls only its own session's worker);
+  refusals answered straight from a zenoh callback (wrong token, unknown session) use ``DROP`` so that no
+  subscriber can stall the callback thread. A client that ``put``s frames must itself put with ``BLOCK``:
+  zenoh's default for ``put`` is ``DROP``, which discards frames when the link's queue is full.
 * **When a session's FIFO is full** the new frame is refused at once: a ``get`` gets an error reply with
   status 429, a ``put`` is dropped, logged, counted (``zenoh_frames_dropped_total``) and an error ack
   with status 429 is published. Frames already queued keep their order; nothing blocks.
@@ -325,9 +329,9 @@ class ZenohBridge:
                                                   name=f"voxfusion-zin-{session_id[:8]}", daemon=True)
                     ing.thread.start()
         except ValueError as e:  # a key that is not sessions/<id>/frames (wildcard id, ...)
-            self._refuse(key, session_id, data, query, ServerError(str(e), "key", None))
+            self._refuse(key, session_id, data, query, ServerError(str(e), "key", None), from_callback=True)
         except Exception as e:  # noqa: BLE001 - every refusal is answered, none stops the bridge
-            self._refuse(key, session_id, data, query, e)
+            self._refuse(key, session_id, data, query, e, from_callback=True)
 
     def _on_frame_put(self, sample: Any) -> None:
         self._enqueue(str(sample.key_expr), sample.payload.to_bytes(), _attachment_text(sample.attachment), None)
@@ -378,10 +382,17 @@ class ZenohBridge:
         if query is not None:
             self._reply(query, key, body.encode("utf-8"))
         else:
-            self._z.put(session_key(session_id, "acks"), json.dumps({"ok": True, "seq": seq, "session": session_id}))
+            self._publish_ack(session_id, {"ok": True, "seq": seq, "session": session_id}, block=True)
         self._attach(session_id, live=True)
 
-    def _refuse(self, key: str, session_id: str | None, data: bytes, query: Any, exc: BaseException) -> None:
+    def _publish_ack(self, session_id: str, ack: dict[str, Any], *, block: bool) -> None:
+        """Publish one ``FrameAck`` on ``sessions/<id>/acks`` (``block``: congestion control BLOCK, else DROP)."""
+        z = require_zenoh()
+        cc = z.CongestionControl.BLOCK if block else z.CongestionControl.DROP
+        self._z.put(session_key(session_id, "acks"), json.dumps(ack), congestion_control=cc)
+
+    def _refuse(self, key: str, session_id: str | None, data: bytes, query: Any, exc: BaseException,
+                *, from_callback: bool = False) -> None:
         status, body = _error_body(exc)
         self._count("zenoh_frames_rejected_total", str(status))
         seq = None
@@ -394,8 +405,8 @@ class ZenohBridge:
             self._reply_err(query, body)
         elif session_id is not None:
             try:
-                self._z.put(session_key(session_id, "acks"),
-                            json.dumps({"ok": False, "seq": seq, "session": session_id, **body}))
+                self._publish_ack(session_id, {"ok": False, "seq": seq, "session": session_id, **body},
+                                  block=not from_callback)
             except Exception:  # noqa: BLE001 - the session is closing
                 log.debug("could not publish the refusal ack", exc_info=True)
 

@@ -54,6 +54,13 @@ def _raw_session(port: int):
     return zenoh.open(cfg)
 
 
+def _put(z, key: str, payload: bytes, attachment: bytes) -> None:
+    """A frame ``put`` as a streamer that wants every frame must send it: congestion control BLOCK (zenoh's
+    default for ``put``, DROP, silently discards messages when the link's queue is full, e.g. on a loaded CI
+    machine)."""
+    z.put(key, payload, attachment=attachment, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
 @pytest.fixture(scope="module")
 def frames():
     cap = SyntheticCapture(SyntheticConfig(n_frames=N_FRAMES, width=96, height=72, seed=3))
@@ -199,15 +206,15 @@ def test_put_frames_are_acknowledged_in_order_and_refusals_do_not_stop_the_bridg
     sub = z.declare_subscriber(session_key(h.id, "acks"), on_ack)
     key = session_key(h.id, "frames")
     try:
-        z.put(key, encode_frame(frames[0], seq=0, session=h.id), attachment=h.token.encode())
-        z.put(key, encode_frame(frames[1], seq=1, session=h.id), attachment=b"wrong-token")
+        _put(z, key, encode_frame(frames[0], seq=0, session=h.id), attachment=h.token.encode())
+        _put(z, key, encode_frame(frames[1], seq=1, session=h.id), attachment=b"wrong-token")
         bad = bytearray(encode_frame(frames[1], seq=1, session=h.id))
         bad[-1] ^= 0xFF  # breaks the CRC
-        z.put(key, bytes(bad), attachment=h.token.encode())
-        z.put(key, encode_frame(frames[1], seq=1, session=h.id), attachment=h.token.encode())
-        z.put(key, encode_frame(frames[2], seq=2, session=h.id), attachment=h.token.encode())
-        z.put(session_key("f" * 32, "frames"), encode_frame(frames[3], seq=3), attachment=h.token.encode())
-        z.put(key, encode_frame(frames[3], seq=3, session=h.id), attachment=h.token.encode())
+        _put(z, key, bytes(bad), attachment=h.token.encode())
+        _put(z, key, encode_frame(frames[1], seq=1, session=h.id), attachment=h.token.encode())
+        _put(z, key, encode_frame(frames[2], seq=2, session=h.id), attachment=h.token.encode())
+        _put(z, session_key("f" * 32, "frames"), encode_frame(frames[3], seq=3), attachment=h.token.encode())
+        _put(z, key, encode_frame(frames[3], seq=3, session=h.id), attachment=h.token.encode())
         assert done.wait(60), acks
     finally:
         sub.undeclare()
@@ -245,7 +252,7 @@ def test_a_blocked_session_never_delays_another_and_a_full_queue_refuses_in_orde
     client = ZenohClient(connect=[f"tcp/127.0.0.1:{port}"], session_id=fast.id, token=fast.token)
     try:
         for i in range(5):  # 1 taken by the (blocked) worker, 2 queued, 2 refused at once
-            z.put(session_key(slow.id, "frames"), encode_frame(frames[i], seq=i, session=slow.id),
+            _put(z, session_key(slow.id, "frames"), encode_frame(frames[i], seq=i, session=slow.id),
                   attachment=slow.token.encode())
         wait_until(lambda: len(acks) >= 2, 30, "the two refusals")
         assert [(a["ok"], a["status"], a["seq"]) for a in acks] == [(False, 429, 3), (False, 429, 4)]
