@@ -35,10 +35,7 @@ import argparse
 import dataclasses
 import json
 import os
-import signal
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -52,7 +49,6 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:
     sys.path.insert(0, str(REPO_ROOT))
 
-import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench.bench_codec import DATA_DIR, JPEG_QUALITY, _iphone_real, _iphone_synthetic  # noqa: E402
@@ -63,6 +59,7 @@ from voxfusion.clients.zenoh_client import ZenohClient  # noqa: E402
 from voxfusion.clients.zenoh_keys import session_key  # noqa: E402
 from voxfusion.core.eval.report import write_json  # noqa: E402
 from voxfusion.proto import encode_frame  # noqa: E402
+from voxfusion.server.child import ServeProcess  # noqa: E402
 
 TINY = ["mapping.rays_per_frame=128", "tracking.rays=128", "tracking.iters=10", "mapping.first_frame_iters=30",
         "field.sdf_hidden=32", "field.color_hidden=32", "mesh_res=4"]
@@ -94,12 +91,6 @@ class LatencyRow:
     ack_p90_ms: float
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def _messages(n: int, n_distinct: int) -> tuple[list[bytes], str]:
     have_real = (DATA_DIR / "stray_iphone_lidar").is_dir() and (DATA_DIR / "sevenscenes_redkitchen").is_dir()
     samples = _iphone_real(n_distinct) if have_real else _iphone_synthetic(n_distinct)
@@ -114,52 +105,11 @@ def _messages(n: int, n_distinct: int) -> tuple[list[bytes], str]:
     return out, source
 
 
-class Server:
-    """``voxfusion serve`` in a subprocess with zenoh on a loopback port."""
-
-    def __init__(self, data_dir: Path, preset: str | None) -> None:
-        self.port, self.zenoh_port = _free_port(), _free_port()
-        config = data_dir.parent / "zenoh-server.json5"
-        shipped = (REPO_ROOT / "configs" / "zenoh" / "server.json5").read_text()
-        config.write_text(shipped.replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{self.zenoh_port}"))
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        env.pop("VOXFUSION_API_KEY", None)
-        self.log = open(data_dir.parent / "server.log", "wb")  # noqa: SIM115 - closed in stop()
-        cmd = [sys.executable, "-m", "voxfusion.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
-               "--data-dir", str(data_dir), "--device", "cpu", "--zenoh", "--zenoh-config", str(config),
-               "--log-level", "warning", "--max-pending-frames", "64"]
-        if preset:
-            cmd += ["--config", preset]
-        self.proc = subprocess.Popen(cmd, cwd=REPO_ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.http = httpx.Client(base_url=self.url, timeout=60)
-        deadline = time.monotonic() + 120
-        while True:
-            if self.proc.poll() is not None:
-                raise SystemExit(f"server exited: {(data_dir.parent / 'server.log').read_text()[-2000:]}")
-            try:
-                if self.http.get("/healthz").json().get("zenoh"):
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                raise SystemExit("server did not start in 120 s")
-            time.sleep(0.1)
-
-    def delete(self, client: BaseClient) -> None:
-        self.http.delete(f"/sessions/{client.session.id}", headers={"Authorization": f"Bearer {client.session.token}"})
-
-    def stop(self) -> None:
-        self.proc.send_signal(signal.SIGINT)
-        try:
-            self.proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-        self.http.close()
-        self.log.close()
+def _delete(server: ServeProcess, client: BaseClient) -> None:
+    server.http.delete(f"/sessions/{client.session.id}", headers={"Authorization": f"Bearer {client.session.token}"})
 
 
-def _throughput(name: str, client: BaseClient, server: Server, messages: list[bytes], overrides: list[str]) -> \
+def _throughput(name: str, client: BaseClient, server: ServeProcess, messages: list[bytes], overrides: list[str]) -> \
         ThroughputRow:
     client.create_session(f"bench-{name}", overrides or None, mode="realtime")
     n = len(messages)
@@ -200,12 +150,12 @@ def _throughput(name: str, client: BaseClient, server: Server, messages: list[by
             f.result(timeout=600)
         seconds = time.perf_counter() - t0
     st = client.status()
-    server.delete(client)
+    _delete(server, client)
     mbit = 8 * sum(len(m) for m in messages) / seconds / 1e6
     return ThroughputRow(name, n, seconds, n / seconds, mbit, st.frames_tracked, st.frames_dropped)
 
 
-def _latency(name: str, client: BaseClient, server: Server, messages: list[bytes], fps: float,
+def _latency(name: str, client: BaseClient, server: ServeProcess, messages: list[bytes], fps: float,
              overrides: list[str]) -> LatencyRow:
     client.create_session(f"bench-latency-{name}", overrides or None, mode="realtime")
     arrived: dict[int, float] = {}
@@ -268,7 +218,7 @@ def _latency(name: str, client: BaseClient, server: Server, messages: list[bytes
     stop.set()
     if reader is not None:
         reader.join(timeout=5)
-    server.delete(client)
+    _delete(server, client)
     lat = sorted(1e3 * (arrived[i] - sent[i]) for i in sent if i in arrived)
     ack = sorted(1e3 * (acked[i] - sent[i]) for i in sent)
 
@@ -298,11 +248,11 @@ def main(argv: list[str] | None = None) -> int:
     latency_messages = messages[: args.latency_frames]
     mean_kb = float(np.mean([len(m) for m in messages])) / 1e3
     tmp = Path(tempfile.mkdtemp(prefix="voxfusion-bench-ingest-"))
-    server = Server(tmp / "data", None)
+    server = ServeProcess(tmp / "data", "--max-pending-frames", "64", zenoh=True)
     throughput: list[ThroughputRow] = []
     latency: list[LatencyRow] = []
     try:
-        zc = ZenohClient(connect=[f"tcp/127.0.0.1:{server.zenoh_port}"], max_in_flight=16, timeout_s=120)
+        zc = ZenohClient(connect=[server.zenoh_endpoint], max_in_flight=16, timeout_s=120)
         hc = Client(server.url, max_in_flight=16)
         for _ in range(args.repeats):  # interleaved, so a busy spell of a shared machine hits every transport
             for name, client in (("zenoh get", zc), ("zenoh put", zc), ("http", hc)):

@@ -28,11 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import signal
-import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -52,14 +48,9 @@ from bench.machine import machine_info  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.eval import format_table, write_json  # noqa: E402
 from voxfusion.proto import MEDIA_TYPE, WireIntrinsics, encode_frame  # noqa: E402
+from voxfusion.server.child import ServeProcess  # noqa: E402
 
 RATE_FPS = 5.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def make_messages(n: int, seed: int) -> list[bytes]:
@@ -74,48 +65,12 @@ def make_messages(n: int, seed: int) -> list[bytes]:
     return out
 
 
-class Server:
-    """``voxfusion serve`` in a subprocess on a temporary data folder."""
-
-    def __init__(self, data_dir: Path, device: str) -> None:
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log = open(data_dir.parent / "server.log", "wb")  # noqa: SIM115 - closed in stop()
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "voxfusion.cli", "serve", "--port", str(self.port), "--data-dir", str(data_dir),
-             "--device", device, "--no-zenoh", "--log-level", "warning", "--max-sessions", "16",
-             "--max-pending-frames", "64"],
-            cwd=REPO_ROOT, stdout=self.log, stderr=subprocess.STDOUT, env={**os.environ, "VOXFUSION_API_KEY": ""})
-        self.http = httpx.Client(base_url=self.url, timeout=120)
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                if self.http.get("/healthz").status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"server did not start: {Path(self.log.name).read_text()[-2000:]}")
-            time.sleep(0.2)
-        self.health = self.http.get("/healthz").json()
-
-    def create(self, name: str) -> tuple[str, dict[str, str]]:
-        r = self.http.post("/sessions", json={"name": name})
-        r.raise_for_status()
-        body = r.json()
-        return body["id"], {"Authorization": f"Bearer {body['token']}"}
-
-    def delete(self, sid: str, auth: dict[str, str]) -> None:
-        self.http.delete(f"/sessions/{sid}", headers=auth)
-
-    def stop(self) -> None:
-        self.http.close()
-        self.proc.send_signal(signal.SIGINT)
-        try:
-            self.proc.wait(timeout=120)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-        self.log.close()
+def _create(server: ServeProcess, name: str) -> tuple[str, dict[str, str]]:
+    """A new session: its id and the ``Authorization`` header of its token."""
+    r = server.http.post("/sessions", json={"name": name})
+    r.raise_for_status()
+    body = r.json()
+    return body["id"], {"Authorization": f"Bearer {body['token']}"}
 
 
 def _pct(values: list[float], q: float) -> float | None:
@@ -128,9 +83,9 @@ def _pct(values: list[float], q: float) -> float | None:
 # ---------------------------------------------------------------------------------------------- ingest
 
 
-def ingest_run(server: Server, messages: list[bytes], n_sessions: int, senders_per_session: int) -> dict:
+def ingest_run(server: ServeProcess, messages: list[bytes], n_sessions: int, senders_per_session: int) -> dict:
     """Post every message to each session as fast as accepted; frames/s per session and round trips."""
-    sessions = [server.create(f"ingest-{k}") for k in range(n_sessions)]
+    sessions = [_create(server, f"ingest-{k}") for k in range(n_sessions)]
     round_trips: list[float] = []
     refused = 0
     lock = threading.Lock()
@@ -166,7 +121,7 @@ def ingest_run(server: Server, messages: list[bytes], n_sessions: int, senders_p
         th.join()
     wall = time.perf_counter() - t0
     for sid, auth in sessions:
-        server.delete(sid, auth)
+        server.http.delete(f"/sessions/{sid}", headers=auth)
     n = len(messages)
     return {"sessions": n_sessions, "senders_per_session": senders_per_session, "frames_per_session": n,
             "wall_s": wall, "accepted_fps_per_session": n / wall, "accepted_fps_total": n * n_sessions / wall,
@@ -177,11 +132,11 @@ def ingest_run(server: Server, messages: list[bytes], n_sessions: int, senders_p
 # --------------------------------------------------------------------------------------------- latency
 
 
-def latency_run(server: Server, messages: list[bytes], n_sessions: int, seconds: float) -> dict:
+def latency_run(server: ServeProcess, messages: list[bytes], n_sessions: int, seconds: float) -> dict:
     """``n_sessions`` realtime sessions, each sent frames at 5 fps for ``seconds``; pose latency on the
     WebSocket per session."""
     n_frames = min(len(messages), int(seconds * RATE_FPS))
-    sessions = [server.create(f"latency-{k}") for k in range(n_sessions)]
+    sessions = [_create(server, f"latency-{k}") for k in range(n_sessions)]
     results = []
     ws_port = server.port
 
@@ -239,7 +194,7 @@ def latency_run(server: Server, messages: list[bytes], n_sessions: int, seconds:
     for th in threads:
         th.join()
     for sid, auth in sessions:
-        server.delete(sid, auth)
+        server.http.delete(f"/sessions/{sid}", headers=auth)
     for o in outs:
         results.append({"sessions": n_sessions, **o})
     return {"sessions": n_sessions, "rate_fps": RATE_FPS, "seconds": seconds, "per_session": results,
@@ -262,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     messages = make_messages(n_frames, seed=0)
     mean_bytes = statistics.mean(len(m) for m in messages)
     with tempfile.TemporaryDirectory(prefix="voxfusion-bench-server-") as tmp:
-        server = Server(Path(tmp) / "data", args.device)
+        server = ServeProcess(Path(tmp) / "data", "--max-sessions", "16", "--max-pending-frames", "64",
+                              device=args.device)
         try:
             ingest = []
             for n_sess, senders in ((1, 1), (1, 4), (2, 1)):

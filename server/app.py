@@ -131,7 +131,8 @@ def start_zenoh_bridge(settings: ServerSettings, manager: SessionManager) -> Any
         log.log(level, "zenoh bridge unavailable (%s); serving HTTP only", e)
         return None
     try:
-        bridge = ZenohBridge(manager, settings.zenoh_config)
+        bridge = ZenohBridge(manager, settings.zenoh_config,
+                             listen=list(settings.zenoh_listen) if settings.zenoh_listen else None)
         bridge.start()
     except Exception as e:  # noqa: BLE001 - zenoh is optional: HTTP keeps working
         level = logging.WARNING if settings.zenoh else logging.INFO

@@ -38,6 +38,8 @@ class ServerSettings:
     """Start the zenoh bridge: ``True`` (warn if it cannot start), ``False``, ``None`` = when importable."""
     zenoh_config: Path | None = None
     """A zenoh JSON5 config file for the bridge (default: a peer on loopback)."""
+    zenoh_listen: tuple[str, ...] | None = None
+    """Replaces the config's ``listen/endpoints`` (e.g. ``("tcp/0.0.0.0:7447",)`` for every interface)."""
     max_sessions: int = 8
     """Open sessions (created, running or finishing) held at once; more are refused with 503."""
     max_frame_bytes: int = 32 * 1024 * 1024
@@ -59,6 +61,11 @@ class ServerSettings:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "data_dir", Path(self.data_dir))
+        if self.zenoh_listen is not None:
+            object.__setattr__(self, "zenoh_listen", tuple(self.zenoh_listen))
+            bad = [e for e in self.zenoh_listen if "/" not in e]
+            if not self.zenoh_listen or bad:
+                raise ConfigError("zenoh_listen", f"endpoints look like 'tcp/0.0.0.0:7447', got {bad or '[]'}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ConfigError("device", f"must be auto, cpu or cuda, got {self.device!r}")
         for name in ("max_sessions", "max_frame_bytes", "max_image_width", "max_image_height",

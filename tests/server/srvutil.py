@@ -6,11 +6,6 @@ subprocess that can be killed), tiny engine settings, and synthetic frames encod
 
 from __future__ import annotations
 
-import os
-import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -25,8 +20,7 @@ from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.trajectory import Trajectory
 from voxfusion.proto import MEDIA_TYPE, encode_frame
 from voxfusion.server import ServerSettings, create_app
-
-REPO_ROOT = Path(__file__).resolve().parents[2]
+from voxfusion.server.child import ServeProcess, ServerStartError, free_port
 
 TINY = {"mapping": {"rays_per_frame": 128, "first_frame_iters": 30}, "tracking": {"rays": 128, "iters": 10},
         "field": {"sdf_hidden": 32, "color_hidden": 32}, "mesh_res": 4}
@@ -34,12 +28,6 @@ TINY = {"mapping": {"rays_per_frame": 128, "first_frame_iters": 30}, "tracking":
 FAST = {"mapping": {"rays_per_frame": 64, "first_frame_iters": 2, "iters": 1},
         "tracking": {"rays": 64, "iters": 2}, "field": {"sdf_hidden": 16, "color_hidden": 16}, "mesh_res": 2}
 """For tests of the server's behaviour, not of the map's quality: as little engine work as possible."""
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_until(predicate, timeout_s: float, what: str, poll_s: float = 0.1):
@@ -130,49 +118,21 @@ class ServerThread:
         self.thread.join(timeout=120)
 
 
-class ServerProcess:
-    """``voxfusion serve`` in a subprocess on a data folder; ``kill()`` sends SIGKILL."""
+class ServerProcess(ServeProcess):
+    """``voxfusion serve`` in a subprocess on a data folder (checkpoints every second), with an :class:`Api`;
+    ``kill()`` sends SIGKILL. A child that does not start fails the test with its log."""
 
     def __init__(self, data_dir: Path, *extra: str) -> None:
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        env.pop("VOXFUSION_API_KEY", None)
-        self.log = open(data_dir.parent / f"server-{self.port}.log", "wb")  # noqa: SIM115 - closed in kill/stop
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "voxfusion.cli", "serve", "--host", "127.0.0.1", "--port", str(self.port),
-             "--data-dir", str(data_dir), "--device", "cpu", "--no-zenoh", "--log-level", "warning",
-             "--checkpoint-interval-s", "1", *extra],
-            cwd=REPO_ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT)
+        try:
+            super().__init__(data_dir, "--checkpoint-interval-s", "1", *extra, start_timeout_s=90)
+        except ServerStartError as e:
+            pytest.fail(str(e))
         self.api = Api(self.url)
 
-        def healthy() -> bool:
-            if self.proc.poll() is not None:
-                pytest.fail(f"server exited with {self.proc.returncode}: {self.read_log()}")
-            try:
-                return self.api.http.get("/healthz", timeout=2).status_code == 200
-            except httpx.TransportError:
-                return False
-
-        wait_until(healthy, 90, "the server subprocess to answer /healthz", poll_s=0.2)
-
     def read_log(self) -> str:
-        return Path(self.log.name).read_text(errors="replace")[-3000:]
+        return self.log_tail()
 
-    def kill(self) -> None:
-        self.proc.send_signal(signal.SIGKILL)
-        self.proc.wait(timeout=30)
-        self.api.close()
-        self.log.close()
-
-    def stop(self) -> None:
-        self.proc.send_signal(signal.SIGINT)
-        try:
-            self.proc.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-        self.api.close()
-        self.log.close()
-
-
+    def _close(self) -> None:
+        if hasattr(self, "api"):  # not yet there when the child failed to start
+            self.api.close()
+        super()._close()

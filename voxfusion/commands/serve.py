@@ -33,6 +33,9 @@ def serve_command(
                                                                             "the zenoh package is installed).")]
     = None,
     zenoh_config: Annotated[Path | None, typer.Option("--zenoh-config", help="zenoh JSON5 config file.")] = None,
+    zenoh_listen: Annotated[list[str] | None, typer.Option(
+        "--zenoh-listen", help="zenoh endpoint to listen on, replacing the config's (repeatable; e.g. "
+                               "tcp/0.0.0.0:7447 for every interface). Implies --zenoh.")] = None,
     max_sessions: Annotated[int, typer.Option(help="Open sessions held at once (more get 503).")] = 8,
     max_frame_mb: Annotated[float, typer.Option(help="Largest request body in MiB (more get 413).")] = 32.0,
     max_pending_frames: Annotated[int, typer.Option(help="Per-session ingest queue bound (more get 429).")] = 32,
@@ -49,7 +52,9 @@ def serve_command(
 
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings = ServerSettings.from_env(
-        data_dir=data_dir, device=device, default_preset=config, zenoh=zenoh, zenoh_config=zenoh_config,
+        data_dir=data_dir, device=device, default_preset=config,
+        zenoh=True if zenoh_listen and zenoh is None else zenoh, zenoh_config=zenoh_config,
+        zenoh_listen=tuple(zenoh_listen) if zenoh_listen else None,
         max_sessions=max_sessions, max_frame_bytes=int(max_frame_mb * 1024 * 1024),
         max_pending_frames=max_pending_frames, checkpoint_interval_s=checkpoint_interval_s)
     typer.echo(f"voxfusion server on http://{host}:{port} (docs: /docs), data in {data_dir}")

@@ -1,0 +1,36 @@
+"""``voxfusion serve`` as a child process (server/child.py), and ``--zenoh-listen``."""
+
+from __future__ import annotations
+
+import pytest
+
+from voxfusion.core.errors import ConfigError
+from voxfusion.server import ServerSettings
+from voxfusion.server.child import ServeProcess, ServerStartError
+
+pytest.importorskip("zenoh")
+
+from voxfusion.clients.zenoh_client import ZenohClient  # noqa: E402
+
+
+def test_serve_with_zenoh_listen_answers_on_that_endpoint_and_stops_cleanly(tmp_path):
+    with ServeProcess(tmp_path / "data", zenoh=True) as srv:
+        assert srv.health["zenoh"] is True
+        client = ZenohClient(connect=[srv.zenoh_endpoint], timeout_s=60)
+        try:
+            created = client.create_session("child", {"tracking": {"rays": 64}})
+            assert client.status().id == created.id
+        finally:
+            client.close()
+    assert srv.proc.returncode == 0, srv.log_tail()
+
+
+def test_a_child_that_cannot_start_raises_with_its_log(tmp_path):
+    with pytest.raises(ServerStartError, match="zenoh_listen"):
+        ServeProcess(tmp_path / "data", "--zenoh-listen", "not-an-endpoint", start_timeout_s=60)
+
+
+def test_zenoh_listen_setting_is_checked():
+    assert ServerSettings(zenoh_listen=["tcp/0.0.0.0:7447"]).zenoh_listen == ("tcp/0.0.0.0:7447",)
+    with pytest.raises(ConfigError, match="zenoh_listen"):
+        ServerSettings(zenoh_listen=[])
