@@ -24,10 +24,11 @@ COPY clients ./clients
 COPY configs ./configs
 RUN pip install ".[baseline,server]"
 
-# Session database, recordings and checkpoints live in /data; mount a zenoh config at /etc/voxfusion/zenoh.json5
-# and add `--zenoh-config /etc/voxfusion/zenoh.json5` to override the default loopback peer.
+# Session database, recordings and checkpoints live in /data. zenoh listens on every interface of the container
+# (port 7447, publish it with -p 7447:7447); for another zenoh setup mount a config at
+# /etc/voxfusion/zenoh.json5 and run `voxfusion serve ... --zenoh-config /etc/voxfusion/zenoh.json5`.
 VOLUME ["/data"]
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=60s \
     CMD ["python3", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4)"]
-CMD ["voxfusion", "serve", "--host", "0.0.0.0", "--data-dir", "/data"]
+CMD ["voxfusion", "serve", "--host", "0.0.0.0", "--data-dir", "/data", "--zenoh-listen", "tcp/0.0.0.0:7447"]
