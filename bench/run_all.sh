@@ -11,7 +11,7 @@ $PY bench/run.py --synthetic --frames 100 --width 320 --height 240 --method base
 $PY bench/run.py --capture ../shared/data/tum_fr1_desk_9frames --method baseline voxfusion \
     --vf-config "$P" --vf-set mapping.max_depth_m=4.0 --name "tum_fr1_desk_9f_$P" --no-progress > bench/logs/tum.log 2>&1
 $PY bench/run.py --capture ../shared/data/sevenscenes_redkitchen --max-frames 300 --method baseline voxfusion \
-    --vf-config "$P" --vf-set mapping.max_depth_m=4.0 loss.w_color=0.1 --name "sevenscenes_300f_$P" --no-progress \
+    --vf-config "$P" --vf-set mapping.max_depth_m=4.0 loss.w_color=0.1 tracking.rays=512 --name "sevenscenes_300f_$P" --no-progress \
     > bench/logs/sevenscenes.log 2>&1
 # the real iPhone capture, all 942 frames, with and without the ARKit prior (iphone-small on CPU, iphone on a GPU)
 if [ "$P" = "cpu-small" ]; then IP=iphone-small; else IP=iphone; fi
