@@ -9,6 +9,7 @@ tracking / mapping times, losses, iterations, lost flags).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import resource
 import time
 from dataclasses import dataclass
@@ -91,6 +92,7 @@ def compare_depth_consistency(capture: Capture, estimate: Trajectory, reference:
     n = len(estimate)
     gaps = tuple(g for g in (15, 60, 240) if g < n) or (max(1, n // 3),)
 
+    @functools.cache  # both trajectories are judged on the same frames: read each once
     def load(i: int) -> tuple[np.ndarray, np.ndarray]:
         f = capture[i]
         return f.depth_m, f.K

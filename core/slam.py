@@ -42,7 +42,7 @@ from .mapping import Keyframe, Mapper, MappingStep
 from .mesh import extract_mesh
 from .render import RenderedImage, render_depth_image
 from .slam_config import VoxFusionConfig, resolve_device
-from .tracking import Tracker, TrackResult, predict_pose
+from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
 from .trajectory import Trajectory
 from .voxels import VoxelMap
 
@@ -179,10 +179,9 @@ class SlamSystem:
         prev2 = good[-2] if len(good) > 1 else None
         dev_prev = self._device_pose_of(prev.index)
         dev_cur = frame.T_world_cam_device
-        from_device = self.config.tracking.use_device_prior and dev_prev is not None and dev_cur is not None
         T = predict_pose(prev.current_pose(), None if prev2 is None else prev2.current_pose(),
                          self.config.tracking, dev_prev, dev_cur)
-        return T, from_device
+        return T, device_prior_applies(self.config.tracking, dev_prev, dev_cur)
 
     def _device_pose_of(self, index: int) -> np.ndarray | None:
         return self._device_poses.get(index)

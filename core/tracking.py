@@ -39,7 +39,7 @@ from .losses import LossConfig, compute_losses
 from .render import RenderConfig, camera_rays, render_rays
 from .voxels import VoxelMap
 
-__all__ = ["TrackingConfig", "TrackResult", "Tracker", "predict_pose"]
+__all__ = ["TrackingConfig", "TrackResult", "Tracker", "device_prior_applies", "predict_pose"]
 
 
 @dataclass(frozen=True)
@@ -129,10 +129,16 @@ class TrackResult:
     time_ms: float
 
 
+def device_prior_applies(config: TrackingConfig, device_prev: np.ndarray | None,
+                         device_cur: np.ndarray | None) -> bool:
+    """Whether :func:`predict_pose` takes the device's relative motion (on, and both frames carry a pose)."""
+    return config.use_device_prior and device_prev is not None and device_cur is not None
+
+
 def predict_pose(T_prev: np.ndarray, T_prev2: np.ndarray | None, config: TrackingConfig,
                  device_prev: np.ndarray | None = None, device_cur: np.ndarray | None = None) -> np.ndarray:
     """Prior pose of the next frame from the last tracked poses (and device poses, if any)."""
-    if config.use_device_prior and device_prev is not None and device_cur is not None:
+    if device_prior_applies(config, device_prev, device_cur):
         return T_prev @ (invert_pose(device_prev) @ device_cur)
     if config.motion_model == "constant_velocity" and T_prev2 is not None:
         return T_prev @ (invert_pose(T_prev2) @ T_prev)

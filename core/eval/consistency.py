@@ -66,27 +66,21 @@ def depth_consistency(load_frame: Callable[[int], tuple[np.ndarray, np.ndarray]]
                       max_diff_m: float = 0.5) -> DepthConsistency:
     """Depth consistency of ``poses`` (``[N, 4, 4]`` camera-to-world, one per frame).
 
-    ``load_frame(i)`` returns frame ``i``'s ``(depth_m [H, W], K [3, 3])``. Pairs start every ``every``-th
-    frame. Frames are loaded once each.
+    ``load_frame(i)`` returns frame ``i``'s ``(depth_m [H, W], K [3, 3])``; it is called for both frames of
+    every pair, so pass a cached loader (``functools.cache``) where reading a frame is slow. Pairs start
+    every ``every``-th frame.
     """
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
         raise ValidationError("poses", f"expected [N, 4, 4], got {poses.shape}")
     if every < 1 or any(g < 1 for g in gaps):
         raise ValidationError("gaps", "gaps and every must be >= 1")
-    cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-
-    def frame(i: int) -> tuple[np.ndarray, np.ndarray]:
-        if i not in cache:
-            cache[i] = load_frame(i)
-        return cache[i]
-
     n = len(poses)
     means, counts = [], []
     for gap in gaps:
         vals = []
         for i in range(0, n - gap, every):
-            (di, Ki), (dj, Kj) = frame(i), frame(i + gap)
+            (di, Ki), (dj, Kj) = load_frame(i), load_frame(i + gap)
             vals.append(pair_disagreement(di, Ki, poses[i], dj, Kj, poses[i + gap], max_diff_m))
         ok = [x for x in vals if np.isfinite(x)]
         means.append(float(np.mean(ok)) if ok else float("nan"))

@@ -27,10 +27,20 @@ def test_serve_with_zenoh_listen_answers_on_that_endpoint_and_stops_cleanly(tmp_
 
 def test_a_child_that_cannot_start_raises_with_its_log(tmp_path):
     with pytest.raises(ServerStartError, match="zenoh_listen"):
-        ServeProcess(tmp_path / "data", "--zenoh-listen", "not-an-endpoint", start_timeout_s=60)
+        ServeProcess(tmp_path / "data", "--zenoh-listen", "not-an-endpoint", zenoh=True, start_timeout_s=60)
 
 
 def test_zenoh_listen_setting_is_checked():
     assert ServerSettings(zenoh_listen=["tcp/0.0.0.0:7447"]).zenoh_listen == ("tcp/0.0.0.0:7447",)
     with pytest.raises(ConfigError, match="zenoh_listen"):
         ServerSettings(zenoh_listen=[])
+
+
+def test_zenoh_listen_with_no_zenoh_is_refused():
+    from typer.testing import CliRunner
+
+    from voxfusion.cli import app
+
+    result = CliRunner().invoke(app, ["serve", "--no-zenoh", "--zenoh-listen", "tcp/127.0.0.1:7447"])
+    assert result.exit_code == 2
+    assert "--no-zenoh" in result.output

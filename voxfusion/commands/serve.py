@@ -50,10 +50,12 @@ def serve_command(
 
     from voxfusion.server import ServerSettings, create_app
 
+    if zenoh_listen and zenoh is False:
+        raise typer.BadParameter("--zenoh-listen needs the zenoh bridge; drop --no-zenoh", param_hint="--zenoh-listen")
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings = ServerSettings.from_env(
         data_dir=data_dir, device=device, default_preset=config,
-        zenoh=True if zenoh_listen and zenoh is None else zenoh, zenoh_config=zenoh_config,
+        zenoh=True if zenoh_listen else zenoh, zenoh_config=zenoh_config,
         zenoh_listen=tuple(zenoh_listen) if zenoh_listen else None,
         max_sessions=max_sessions, max_frame_bytes=int(max_frame_mb * 1024 * 1024),
         max_pending_frames=max_pending_frames, checkpoint_interval_s=checkpoint_interval_s)
