@@ -1,5 +1,6 @@
 # The two commands a new user needs: `make demo` and `make test`. Both set everything up first.
-.PHONY: setup demo test lint bench clean
+# `make help` lists every target; `make bench-gpu` is the GPU benchmark suite (needs a CUDA device).
+.PHONY: help setup demo test lint bench bench-gpu clean
 
 VENV := .venv
 STAMP := $(VENV)/.bootstrapped
@@ -18,6 +19,20 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+
+# GPU benchmark suite (bench/gpu_suite.py): ms per tracking / mapping iteration at the paper preset, realtime
+# session rates at 30 Hz, render latency, mesh time, peak GPU memory, concurrent sessions per GPU; writes
+# bench/results/gpu-<gpu>.json. Refuses with a message when no CUDA device is visible.
+bench-gpu: $(STAMP)
+	$(VENV)/bin/python bench/gpu_suite.py
+
+help:
+	@echo "make demo       set up, start the server, stream a synthetic capture, print ATE and fps"
+	@echo "make test       set up, run the test suite (CPU only)"
+	@echo "make lint       ruff check ."
+	@echo "make bench-gpu  GPU benchmark suite -> bench/results/gpu-<gpu>.json (needs CUDA; up to ~20 min)"
+	@echo "make setup      create .venv and install everything (the other targets do it first)"
+	@echo "make clean      remove .venv and build files"
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

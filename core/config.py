@@ -17,7 +17,8 @@ import yaml
 
 from .errors import ConfigError
 
-__all__ = ["config_from_dict", "config_to_dict", "load_config", "parse_overrides", "apply_overrides"]
+__all__ = ["config_from_dict", "config_to_dict", "load_config", "parse_overrides", "apply_overrides",
+           "merge_dicts", "read_config_file"]
 
 T = TypeVar("T")
 
@@ -138,21 +139,24 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, Any]:
     return out
 
 
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+def merge_dicts(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """Nested merge of plain config dicts: ``over`` wins key by key, sub-mappings are merged (new dict)."""
     out = dict(base)
     for k, v in over.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)
+            out[k] = merge_dicts(out[k], v)
         else:
             out[k] = v
     return out
+
+
 
 
 def apply_overrides(cfg: T, overrides: dict[str, Any] | list[str]) -> T:
     """Return a new config with ``overrides`` (nested dict or ``key=value`` strings) applied."""
     if isinstance(overrides, (list, tuple)):
         overrides = parse_overrides(overrides)
-    return config_from_dict(type(cfg), _merge(config_to_dict(cfg), overrides))
+    return config_from_dict(type(cfg), merge_dicts(config_to_dict(cfg), overrides))
 
 
 def load_config(cls: type[T], path: str | Path | None = None, overrides: list[str] | None = None) -> T:
@@ -169,6 +173,11 @@ def load_config(cls: type[T], path: str | Path | None = None, overrides: list[st
     return cfg
 
 
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """The plain dict of a YAML config file with its ``base:`` chain merged in (keys not yet checked)."""
+    return _read_yaml_with_base(Path(path))
+
+
 def _read_yaml_with_base(path: Path, depth: int = 0) -> dict[str, Any]:
     if depth > 8:
         raise ConfigError(str(path), "too many nested 'base:' references")
@@ -182,5 +191,5 @@ def _read_yaml_with_base(path: Path, depth: int = 0) -> dict[str, Any]:
         raise ConfigError(str(path), "top level must be a mapping")
     base = data.pop("base", None)
     if base is not None:
-        data = _merge(_read_yaml_with_base((path.parent / base).resolve(), depth + 1), data)
+        data = merge_dicts(_read_yaml_with_base((path.parent / base).resolve(), depth + 1), data)
     return data

@@ -1,7 +1,26 @@
-"""The engine's top-level configuration: one frozen tree of every component's own config.
+"""The engine's top-level configuration: one frozen tree of every component's own config, its presets, and
+the one function that picks a preset for a capture and a device (:func:`preset_for`).
 
-Presets live in ``configs/<name>.yaml`` (see :func:`load_preset`); any key can be overridden with
-``--set dotted.key=value`` on the command line.
+Presets live in ``configs/<name>.yaml``; any key can be overridden with ``--set dotted.key=value`` on the
+command line. There are two sorts, one concept per name:
+
+* **kind presets** say what a family of captures needs (``tum``, ``sevenscenes``, ``replica``, ``scannet``,
+  ``iphone``, ``synthetic``; ``default`` = the built-ins). They leave sizes (rays, iterations, network widths)
+  at the built-in GPU sizes.
+* **size presets** declare ``sized_for`` and set only sizes: ``cpu`` (every CPU number, in one file) and
+  ``paper`` (the paper's GPU sizes). A size preset may add ``per_kind:`` sections, applied on top of it when it
+  is composed with that kind (the iPhone's own CPU numbers, say).
+
+Names compose with ``+``: ``tum+cpu`` is the TUM preset at CPU sizes. Kind presets are merged left to right,
+then the size preset (at most one, wherever it is named) and its section for each named kind, so sizes always
+win over kinds. Below all of them lie the capture's facts (:func:`profile_overrides`, when a capture is at hand)
+and above them the ``--set`` overrides:
+
+    built-ins < capture profile < kind presets < size preset < its per_kind sections < --set
+
+A config whose ``sized_for`` is ``gpu`` (every kind preset alone, ``paper``) run on a CPU gets one warning with
+the speed to expect (:func:`size_warning`). ``cpu-small`` and ``iphone-small`` are the old names of ``cpu``
+and ``iphone+cpu`` (:data:`PRESET_ALIASES`).
 """
 
 from __future__ import annotations
@@ -13,7 +32,9 @@ from typing import Literal
 
 import torch
 
-from .config import load_config
+from .config import apply_overrides, config_from_dict, merge_dicts, read_config_file
+from .datasets.frame import Capture
+from .datasets.profile import CAPTURE_KINDS, CaptureProfile
 from .errors import ConfigError
 from .field import FieldConfig
 from .losses import LossConfig
@@ -21,15 +42,56 @@ from .mapping import MappingConfig
 from .render import RenderConfig
 from .tracking import TrackingConfig
 
-__all__ = ["VoxFusionConfig", "CONFIG_DIR", "preset_path", "load_preset", "resolve_device"]
+__all__ = [
+    "VoxFusionConfig",
+    "CONFIG_DIR",
+    "CPU_PRESET",
+    "KIND_PRESETS",
+    "PRESET_ALIASES",
+    "UNREGISTERED_COLOR_WEIGHT",
+    "GPU_SIZES_ON_CPU_FPS",
+    "CPU_SIZES_ON_CPU_FPS",
+    "PresetChoice",
+    "preset_path",
+    "preset_names",
+    "check_preset_name",
+    "load_preset",
+    "profile_overrides",
+    "preset_for",
+    "size_warning",
+    "resolve_device",
+]
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 """Folder of the named presets (``configs/`` of the repository / the installed ``voxfusion.configs``)."""
 
+CPU_PRESET = "cpu"
+"""The size preset :func:`preset_for` composes with the kind preset when there is no CUDA device."""
+
+KIND_PRESETS: dict[str, str] = {kind: ("default" if kind == "unknown" else kind) for kind in CAPTURE_KINDS}
+"""Capture kind (:attr:`CaptureProfile.kind`) -> its preset name."""
+
+PRESET_ALIASES: dict[str, str] = {"cpu-small": "cpu", "iphone-small": "iphone+cpu"}
+"""Old preset names -> what they are now (kept so scripts, stored sessions and benchmark commands still run)."""
+
+UNREGISTERED_COLOR_WEIGHT = 0.1
+"""``loss.w_color`` for captures whose colour is not registered to depth (7-Scenes: 0.5 blurs geometry)."""
+
+# Speeds that size_warning quotes, (low, high) frames/s: `voxfusion run ../shared/data/tum_fr1_desk_9frames`
+# (TUM 640x480) on the project's 2-core CPU (AMD EPYC, shared with other jobs, so a range), measured
+# 2026-11-23. Re-measure when the CPU numbers in configs/cpu.yaml or the engine's speed change.
+GPU_SIZES_ON_CPU_FPS = (0.02, 0.04)
+"""``--config tum`` (GPU sizes) on the 2-core CPU: 0.021 frames/s over 3 frames (the first, 100 mapping
+iterations, took 81 s; later frames 15-45 s: 30 tracking iterations at 0.4 s, 10 mapping iterations at 0.9 s)."""
+CPU_SIZES_ON_CPU_FPS = (0.06, 0.25)
+"""``--config tum+cpu`` on the same CPU: 0.061 and 0.095 frames/s over 9 frames with the machine busy (load
+average 4-8 on 2 cores), 0.24 in the earlier benchmark on a quieter machine
+(bench/results/tum_fr1_desk_9f_cpu-small.json)."""
+
 
 @dataclass(frozen=True)
 class VoxFusionConfig:
-    """Everything a run needs. Example: ``load_preset("cpu-small", ["mapping.iters=5"])``."""
+    """Everything a run needs. Example: ``load_preset("tum+cpu", ["mapping.iters=5"])``."""
 
     voxel_size_m: float = 0.2
     """Voxel edge in metres (paper: 0.2)."""
@@ -46,6 +108,10 @@ class VoxFusionConfig:
     first_pose: Literal["reference", "device", "identity"] = "reference"
     """Pose of the first frame: its reference pose (so trajectories live in the ground-truth frame), else
     its device pose, else identity; ``device`` skips the reference, ``identity`` always starts at I."""
+    sized_for: Literal["gpu", "cpu"] = "gpu"
+    """The machine the sizes (rays, iterations, network widths) are chosen for: ``cpu`` in ``configs/cpu.yaml``,
+    ``gpu`` for the built-ins and every other preset. A ``gpu`` config run on a CPU warns once
+    (:func:`size_warning`)."""
     field: FieldConfig = dataclasses.field(default_factory=FieldConfig)
     render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
     loss: LossConfig = dataclasses.field(default_factory=LossConfig)
@@ -68,20 +134,196 @@ def resolve_device(device: str) -> torch.device:
     return torch.device(device)
 
 
+def preset_names() -> list[str]:
+    """Names of the shipped presets (the YAML files in :data:`CONFIG_DIR`), sorted; aliases not included."""
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+
+
+def check_preset_name(name: str) -> None:
+    """Raise :class:`ConfigError` (field ``preset``) unless ``name`` is a shipped preset, an alias or a ``+``
+    composition of those: never a file path (what a server accepts from a client)."""
+    known = preset_names()
+    for part in str(name).split("+"):
+        part = PRESET_ALIASES.get(part.strip(), part.strip())
+        if not all(p in known for p in part.split("+")):
+            raise ConfigError("preset", f"unknown preset {name!r}; known presets: {known}, composed with '+' "
+                                        "(e.g. iphone+cpu)")
+
+
 def preset_path(name_or_path: str | Path) -> Path:
-    """A preset name (``tum``) or a path to a YAML file -> the file's path."""
+    """A preset name (``tum``) or a path to a YAML file -> the file's path.
+
+    A bare name of a shipped preset wins over a file or folder of that name in the working directory.
+    """
     p = Path(name_or_path)
-    if p.suffix in (".yaml", ".yml") or p.exists():
+    if p.suffix in (".yaml", ".yml"):
         return p
     cand = CONFIG_DIR / f"{name_or_path}.yaml"
-    if not cand.is_file():
-        known = sorted(q.stem for q in CONFIG_DIR.glob("*.yaml"))
-        raise ConfigError("config", f"no preset named {str(name_or_path)!r}; known presets: {known}")
-    return cand
+    if p.name == str(name_or_path) and cand.is_file():
+        return cand
+    if p.is_file():
+        return p
+    raise ConfigError("config", f"no preset named {str(name_or_path)!r}; known presets: {preset_names()} "
+                      "(compose a kind and a size with '+', e.g. tum+cpu)")
 
 
-def load_preset(name_or_path: str | Path | None = None,
-                overrides: list[str] | None = None) -> VoxFusionConfig:
-    """Load a named preset or YAML file (None: the built-in defaults) and apply ``key=value`` overrides."""
-    path = preset_path(name_or_path) if name_or_path is not None else None
-    return load_config(VoxFusionConfig, path, overrides)
+def _preset_parts(name_or_path: str | Path) -> list[str | Path]:
+    """``"iphone-small+x"`` -> ``["iphone", "cpu", "x"]``: aliases expanded, ``+`` split (not in file paths)."""
+    if isinstance(name_or_path, Path):
+        return [name_or_path]
+    p = Path(name_or_path)
+    if (p.suffix in (".yaml", ".yml") or "/" in str(name_or_path)) and p.is_file():  # a file path with a '+' in it
+        return [name_or_path]
+    name = str(name_or_path)
+    parts: list[str | Path] = []
+    for part in name.split("+"):
+        part = part.strip()
+        if not part:
+            raise ConfigError("config", f"empty name in preset composition {name!r}")
+        alias = PRESET_ALIASES.get(part)
+        parts += _preset_parts(alias) if alias is not None else [part]
+    return parts
+
+
+def _preset_data(name_or_path: str | Path) -> dict:
+    """The merged plain dict of a preset name, composition (``kind+size``) or YAML path (module docstring)."""
+    kinds: list[tuple[str, dict]] = []
+    sizes: list[tuple[str, dict]] = []
+    for part in _preset_parts(name_or_path):
+        data = read_config_file(preset_path(part))
+        stem = Path(part).stem if isinstance(part, Path) or Path(part).suffix else str(part)
+        (sizes if "sized_for" in data else kinds).append((stem, data))
+        if "per_kind" in data and "sized_for" not in data:
+            raise ConfigError("per_kind", f"preset {stem!r}: only a size preset (one that sets sized_for) may have "
+                                          "per_kind sections")
+    if len(sizes) > 1:
+        raise ConfigError("config", f"at most one size preset per composition, got {[n for n, _ in sizes]}")
+    merged: dict = {}
+    for _, data in kinds + sizes:
+        merged = merge_dicts(merged, {k: v for k, v in data.items() if k != "per_kind"})
+    for size_name, data in sizes:
+        sections = data.get("per_kind") or {}
+        if not isinstance(sections, dict) or not all(isinstance(v, dict) for v in sections.values()):
+            raise ConfigError("per_kind", f"preset {size_name!r}: must map kind names to config sections")
+        unknown = sorted(set(sections) - set(CAPTURE_KINDS))
+        if unknown:
+            raise ConfigError(f"per_kind.{unknown[0]}", f"preset {size_name!r}: not a capture kind; kinds: "
+                                                        f"{list(CAPTURE_KINDS)}")
+        for kind_name, _ in kinds:
+            if kind_name in sections:
+                merged = merge_dicts(merged, sections[kind_name])
+    return merged
+
+
+def profile_overrides(profile: CaptureProfile) -> dict:
+    """The config values a capture's facts call for, as a nested dict (what :func:`load_preset` puts under the
+    presets when it is given a profile).
+
+    * ``max_depth_m`` -> ``mapping.max_depth_m`` (depth beyond is dropped);
+    * ``has_confidence`` -> ``mapping.min_confidence: 1`` (low-confidence pixels dropped);
+    * no colour -> ``loss.w_color: 0``; colour not registered to depth -> ``loss.w_color``
+      :data:`UNREGISTERED_COLOR_WEIGHT`.
+
+    Example: a 7-Scenes capture -> ``{"mapping": {"max_depth_m": 4.0}, "loss": {"w_color": 0.1}}``.
+    """
+    mapping: dict = {}
+    out: dict = {}
+    if profile.max_depth_m is not None:
+        mapping["max_depth_m"] = float(profile.max_depth_m)
+    if profile.has_confidence:
+        mapping["min_confidence"] = 1
+    if mapping:
+        out["mapping"] = mapping
+    if not profile.has_color:
+        out["loss"] = {"w_color": 0.0}
+    elif not profile.color_registered:
+        out["loss"] = {"w_color": UNREGISTERED_COLOR_WEIGHT}
+    return out
+
+
+def load_preset(name_or_path: str | Path | None = None, overrides: list[str] | None = None,
+                profile: CaptureProfile | None = None) -> VoxFusionConfig:
+    """Load a preset and apply ``key=value`` overrides.
+
+    Args:
+        name_or_path: a preset name (``tum``), a composition (``tum+cpu``), an old name (``cpu-small``), a YAML
+            path, or ``None`` for the built-in defaults.
+        overrides: ``["tracking.iters=20", ...]``, applied last.
+        profile: the capture's facts; their values (:func:`profile_overrides`) lie under the presets.
+
+    Example: ``load_preset("sevenscenes+cpu", ["mapping.iters=5"], profile=capture.profile)``.
+    """
+    data = profile_overrides(profile) if profile is not None else {}
+    if name_or_path is not None:
+        data = merge_dicts(data, _preset_data(name_or_path))
+    cfg = config_from_dict(VoxFusionConfig, data)
+    if overrides:
+        cfg = apply_overrides(cfg, list(overrides))
+    return cfg
+
+
+@dataclass(frozen=True)
+class PresetChoice:
+    """What :func:`preset_for` picked."""
+
+    config: VoxFusionConfig
+    preset: str
+    """The preset name it loaded, e.g. ``"tum+cpu"``."""
+    reason: str
+    """One line for people: what was picked and why (kind, facts, device)."""
+
+
+def preset_for(capture: Capture, device: str = "auto", overrides: list[str] | None = None) -> PresetChoice:
+    """Pick the preset for ``capture`` on ``device`` and load it with the capture's facts.
+
+    The capture's kind (``capture.profile.kind``) names the kind preset (:data:`KIND_PRESETS`); with no CUDA
+    device (``device`` ``auto`` without a GPU, or ``cpu``) it is composed with :data:`CPU_PRESET`. The
+    profile's facts lie under the presets, ``overrides`` on top.
+
+    Raises:
+        ConfigError: ``device`` is ``cuda`` and no CUDA device is available, or a bad override.
+
+    Example::
+
+        choice = preset_for(open_capture("../shared/data/tum_fr1_desk_9frames"))
+        print(choice.reason)   # preset tum+cpu: ... TUM RGB-D, Kinect v1 640x480 ...; no CUDA device: CPU sizes
+    """
+    profile = capture.profile
+    dev = resolve_device(device)
+    kind_preset = KIND_PRESETS[profile.kind]
+    if dev.type == "cuda":
+        name, size_why = kind_preset, "a CUDA device is present: GPU sizes"
+    else:
+        name = CPU_PRESET if kind_preset == "default" else f"{kind_preset}+{CPU_PRESET}"
+        size_why = ("CPU requested" if device.startswith("cpu") else "no CUDA device") + \
+            f": CPU sizes ({CPU_PRESET}.yaml)"
+    config = load_preset(name, overrides, profile=profile)
+    what = profile.sensor or "a capture of unknown kind"
+    reason = f"preset {name}: {capture.name} is {what} (kind {profile.kind}; {profile.describe()}); {size_why}"
+    return PresetChoice(config, name, reason)
+
+
+def _cpu_variant(preset: str | Path | None) -> str:
+    """The preset to suggest instead of ``preset`` on a CPU: its kind parts composed with :data:`CPU_PRESET`."""
+    if preset is None:
+        return CPU_PRESET
+    kinds = [str(p) for p in _preset_parts(preset) if "sized_for" not in read_config_file(preset_path(p))]
+    kinds = [k for k in kinds if k != "default"]
+    return "+".join([*kinds, CPU_PRESET])
+
+
+def size_warning(config: VoxFusionConfig, preset: str | Path | None = None) -> str | None:
+    """One line warning that a GPU-sized ``config`` (``sized_for: gpu``) will run on the CPU, with the speed to
+    expect and the preset to use instead; ``None`` when the sizes fit the device (or the device is CUDA).
+
+    ``preset``: the name the config was loaded from (to name its CPU variant), ``None`` for the built-ins.
+    """
+    if config.sized_for != "gpu" or config.device.startswith("cuda"):
+        return None
+    if config.device == "auto" and torch.cuda.is_available():
+        return None
+    what = f"preset {str(preset)!r}" if preset is not None else "the built-in configuration"
+    slow, fast = (f"{lo:g}-{hi:g}" for lo, hi in (GPU_SIZES_ON_CPU_FPS, CPU_SIZES_ON_CPU_FPS))
+    return (f"warning: {what} is sized for a GPU but runs on the CPU: expect about {slow} frames/s (TUM 640x480 "
+            f"on a 2-core CPU; the first frame alone over a minute). Use --config {_cpu_variant(preset)} for CPU "
+            f"sizes (about {fast} frames/s there), or leave out --config to let voxfusion choose.")

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from voxfusion.core.datasets.frame import BaseCapture, RGBDFrame
+from voxfusion.core.datasets.profile import LIDAR_MAX_DEPTH_M, CaptureProfile
 from voxfusion.core.errors import CaptureError, CaptureFormatError, ValidationError
 
 from .frame_codec import decode_frame, read_header
@@ -296,6 +297,22 @@ class RecordingCapture(BaseCapture):
         with open(self.file, "rb") as f:
             f.seek(self._scan.offsets[i])
             return f.read(self._scan.lengths[i])
+
+    @property
+    def profile(self) -> CaptureProfile:
+        """Read off the first frame: kind ``iphone`` (LiDAR depth to 5 m) when it carries a confidence map or
+        a device pose, as phone clients send, else ``unknown``."""
+        if self._profile is None:
+            if not len(self):
+                self._profile = CaptureProfile()
+            else:
+                f = self[0]
+                phone = f.confidence is not None or f.T_world_cam_device is not None
+                w, h = f.width, f.height
+                self._profile = (CaptureProfile.from_frame(f, "iphone", max_depth_m=LIDAR_MAX_DEPTH_M,
+                                                           sensor=f"voxfusion recording, phone {w}x{h}")
+                                 if phone else CaptureProfile.from_frame(f, sensor=f"voxfusion recording {w}x{h}"))
+        return self._profile
 
     def seqs(self) -> list[int]:
         """The sender's ``seq`` of every record, in order (headers only; no image is decoded)."""

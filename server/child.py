@@ -41,7 +41,7 @@ class ServeProcess:
 
     Args:
         data_dir: the server's data folder (its log is written beside it, ``server-<port>.log``).
-        *args: more ``voxfusion serve`` options (``"--config", "cpu-small"``, ...).
+        *args: more ``voxfusion serve`` options (``"--config", "cpu"``, ...).
         device: ``--device``.
         zenoh: start the zenoh bridge listening on ``tcp/127.0.0.1:<zenoh_port>`` (a free port).
         api_key: ``VOXFUSION_API_KEY`` of the child (``None``: none, whatever this process has).

@@ -24,7 +24,7 @@ from typing import Any
 from voxfusion import __version__
 from voxfusion.core.config import apply_overrides, config_from_dict, config_to_dict
 from voxfusion.core.errors import ConfigError, ValidationError
-from voxfusion.core.slam_config import CONFIG_DIR, VoxFusionConfig, load_preset, resolve_device
+from voxfusion.core.slam_config import CPU_PRESET, VoxFusionConfig, check_preset_name, load_preset, resolve_device
 from voxfusion.proto.api_extra import HealthOut, SessionStatusOut
 from voxfusion.proto.recording import RECORDING_FILENAME, scan_recording
 from voxfusion.proto.schemas import PoseOut, RenderRequest, SessionMode, SessionState, Trajectory
@@ -62,7 +62,7 @@ class SessionManager:
     def __init__(self, settings: ServerSettings) -> None:
         self.settings = settings
         self.device = resolve_device(settings.device)
-        self.default_preset = settings.default_preset or ("cpu-small" if self.device.type == "cpu" else "default")
+        self.default_preset = settings.default_preset or (CPU_PRESET if self.device.type == "cpu" else "default")
         self.zenoh_running = False
         self.counters: Counter[tuple[str, str]] = Counter()
         """Event counters for ``/metrics``: ``(name, label value)`` -> count."""
@@ -79,10 +79,10 @@ class SessionManager:
         """Open the database (sessions from earlier runs stay listed) and start housekeeping."""
         self.settings.sessions_dir.mkdir(parents=True, exist_ok=True)
         self._store = SessionStore(self.settings.database_path)
-        self._preset_names()  # fail early if the presets folder is missing
-        if self.default_preset not in self._preset_names():
-            raise ConfigError("default_preset", f"unknown preset {self.default_preset!r}; known: "
-                                                f"{self._preset_names()}")
+        try:  # fail early on a bad --config (or a missing presets folder)
+            check_preset_name(self.default_preset)
+        except ConfigError as e:
+            raise ConfigError("default_preset", e.problem) from e
         detached = [r.id for r in self.store.all() if r.state in _OPEN_STATES]
         if detached:
             log.info("%d session(s) were open when the server stopped; they resume on request or on their next "
@@ -121,16 +121,13 @@ class SessionManager:
                     log.exception("housekeeping of session %s failed", s.id)
 
     # ------------------------------------------------------------------ identity and access
-    @staticmethod
-    def _preset_names() -> list[str]:
-        return sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
-
     def _build_config(self, preset: str | None, overrides: dict[str, Any] | None) -> tuple[str, VoxFusionConfig]:
         preset = preset or self.default_preset
-        known = self._preset_names()
-        if preset not in known:
-            raise ValidationError("preset", f"unknown preset {preset!r}; known presets: {known}")
-        cfg = load_preset(CONFIG_DIR / f"{preset}.yaml")
+        try:
+            check_preset_name(preset)  # names only, never a path from a client
+        except ConfigError as e:
+            raise ValidationError("preset", e.problem) from e
+        cfg = load_preset(preset)
         if overrides:
             if not isinstance(overrides, dict):
                 raise ValidationError("config", "must be a JSON object of configuration overrides")

@@ -30,7 +30,7 @@ class ServerSettings:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Torch device of every session's engine (``auto``: CUDA when available)."""
     default_preset: str | None = None
-    """Preset of new sessions that name none; ``None``: ``cpu-small`` on CPU, ``default`` on CUDA."""
+    """Preset of new sessions that name none; ``None``: ``cpu`` on CPU, ``default`` on CUDA."""
     api_key: str | None = None
     """When set, ``POST /sessions``, ``GET /sessions`` and ``GET /metrics`` require it (``X-API-Key`` or
     ``Authorization: Bearer``). :meth:`from_env` reads it from ``VOXFUSION_API_KEY``."""

@@ -1,11 +1,14 @@
 """Capture readers: every format converts to :class:`RGBDFrame` at the edge.
 
 ``open_capture(path)`` detects the format (TUM RGB-D, 7-Scenes, Replica, ScanNet, Stray Scanner,
-Record3D) and returns a lazy :class:`Capture`; the readers can also be used directly.
+Record3D) and returns a lazy :class:`Capture`; the readers can also be used directly. Every capture has a
+``profile`` (:class:`CaptureProfile`: kind, useful depth range, confidence, colour) that the preset
+chooser (:func:`voxfusion.core.slam_config.preset_for`) follows.
 """
 
 from .frame import BaseCapture, Capture, RGBDFrame
 from .open import CAPTURE_FORMATS, CaptureFormat, detect_format, open_capture
+from .profile import CAPTURE_KINDS, CaptureKind, CaptureProfile
 from .record3d import Record3DCapture
 from .replica import ReplicaCapture
 from .scannet import ScanNetCapture
@@ -24,6 +27,9 @@ __all__ = [
     "RGBDFrame",
     "Capture",
     "BaseCapture",
+    "CaptureProfile",
+    "CaptureKind",
+    "CAPTURE_KINDS",
     "open_capture",
     "detect_format",
     "CaptureFormat",

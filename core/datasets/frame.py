@@ -11,6 +11,7 @@ import numpy as np
 
 from ..errors import ShapeError, ValidationError
 from ..geometry import check_intrinsics, check_rigid
+from .profile import CaptureProfile
 
 __all__ = ["RGBDFrame", "Capture", "BaseCapture"]
 
@@ -106,14 +107,19 @@ class Capture(Protocol):
     @property
     def gt_mesh_path(self) -> Path | None: ...
 
+    @property
+    def profile(self) -> CaptureProfile: ...
+
 
 class BaseCapture:
     """Shared machinery for readers: subclasses set ``name``/``path`` and implement ``__len__`` and
-    ``_load(i)``; indexing, negative indices, range checks and lazy iteration come from here."""
+    ``_load(i)``; indexing, negative indices, range checks and lazy iteration come from here. Readers set
+    ``_profile`` (a :class:`CaptureProfile`) in ``__init__``; other captures get one read off frame 0."""
 
     name: str
     path: Path
     _gt_mesh_path: Path | None = None
+    _profile: CaptureProfile | None = None
 
     def __len__(self) -> int:
         raise NotImplementedError  # abstract: every reader defines it
@@ -141,6 +147,14 @@ class BaseCapture:
     def gt_mesh_path(self) -> Path | None:
         """Ground-truth mesh of the scene, when the capture has one."""
         return self._gt_mesh_path
+
+    @property
+    def profile(self) -> CaptureProfile:
+        """What this capture is (kind, useful depth range, confidence, colour): the reader's
+        :class:`CaptureProfile`, or for other captures one read off frame 0 (kind ``unknown``)."""
+        if self._profile is None:
+            self._profile = CaptureProfile.from_frame(self[0]) if len(self) else CaptureProfile()
+        return self._profile
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, path='{self.path}', frames={len(self)})"

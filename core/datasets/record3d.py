@@ -37,6 +37,7 @@ from ..errors import CaptureError, CaptureFormatError
 from ..geometry import opengl_to_opencv, pose_from_tum, scale_intrinsics
 from .frame import BaseCapture, RGBDFrame
 from .images import check_confidence, decode_color, resize_color, validate_intrinsics
+from .profile import LIDAR_MAX_DEPTH_M, CaptureProfile
 
 __all__ = ["Record3DCapture"]
 
@@ -109,6 +110,9 @@ class Record3DCapture(BaseCapture):
             if not np.all(np.isfinite(poses[:n])) or np.any(norms < 1e-6):
                 raise CaptureFormatError(meta_src, "'poses' holds a non-finite value or a zero quaternion")
             self._poses = opengl_to_opencv(pose_from_tum(poses[:n, 4:7], q / norms[:, None]))
+        self._profile = CaptureProfile(
+            "iphone", LIDAR_MAX_DEPTH_M, has_confidence="rgbd/0.conf" in self._names,
+            sensor=f"Record3D, iPhone LiDAR {self.width}x{self.height}")
         if timestamps is not None and len(timestamps) >= n:
             self._timestamps_s = np.asarray(timestamps[:n], dtype=np.float64)
         elif fps:

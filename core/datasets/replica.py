@@ -19,6 +19,8 @@ Intrinsics, first match wins:
 The ground-truth mesh is ``<root>/../<name>_mesh.ply`` (release layout), ``<root>/gt_mesh.ply`` (our
 synthetic captures) or ``<root>/mesh.ply``.
 Replica has no timestamps; ``timestamp_s = index / frame_rate_hz``.
+Profile: kind ``replica`` (exact rendered depth to 10 m, colour registered); kind ``synthetic`` when
+``<root>/gt_mesh.ply`` marks a scene that ``voxfusion synth --layout replica`` wrote.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from .images import (
     read_text_matrix,
     validate_intrinsics,
 )
+from .profile import SYNTHETIC_MAX_DEPTH_M, CaptureProfile
 
 __all__ = ["REPLICA_INTRINSICS", "REPLICA_DEPTH_SCALE", "ReplicaCapture"]
 
@@ -115,6 +118,12 @@ class ReplicaCapture(BaseCapture):
             if mesh.is_file():
                 self._gt_mesh_path = mesh
                 break
+        size = f"{self.width}x{self.height}"
+        if (root / "gt_mesh.ply").is_file():  # what `voxfusion synth --layout replica` writes
+            kind, sensor = "synthetic", f"voxfusion synthetic room {size}"
+        else:
+            kind, sensor = "replica", f"Replica (rendered) {size}"
+        self._profile = CaptureProfile(kind, SYNTHETIC_MAX_DEPTH_M, sensor=sensor)
 
     def _resolve_intrinsics(self, K: np.ndarray | tuple | None,
                             depth_scale: float | None) -> tuple[np.ndarray, float, str]:

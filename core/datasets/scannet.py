@@ -10,7 +10,8 @@ Layout::
 
 Frame ids are whatever the export wrote (every frame, or every n-th with ``--frame_skip``); frames are
 ordered by id. Colour is resized to the depth resolution with area averaging and used with the depth
-intrinsics (ScanNet's colour and depth are only approximately registered; this is the usual practice).
+intrinsics (ScanNet's colour and depth are only approximately registered; this is the usual practice, and the
+profile says ``color_registered=False``).
 Non-finite poses give ``T_world_cam=None``. ``timestamp_s = frame_id / 30``. The ground-truth mesh is
 ``<scene>_vh_clean_2.ply`` in the root or its parent folder.
 """
@@ -29,11 +30,14 @@ from .images import (
     resize_color,
     validate_intrinsics,
 )
+from .profile import CaptureProfile
 from .sevenscenes import read_pose_matrix
 
 __all__ = ["ScanNetCapture"]
 
 FRAME_RATE_HZ = 30.0
+SCANNET_MAX_DEPTH_M = 5.0
+"""Structure-sensor depth of ScanNet is used to 5 m (noisy beyond, like every structured-light sensor)."""
 
 
 class ScanNetCapture(BaseCapture):
@@ -69,6 +73,8 @@ class ScanNetCapture(BaseCapture):
         if not K_path.is_file():
             raise CaptureFormatError(K_path, "depth intrinsics not found")
         self.K = validate_intrinsics(read_intrinsics_txt(K_path), self.width, self.height, K_path)
+        self._profile = CaptureProfile("scannet", SCANNET_MAX_DEPTH_M, color_registered=False,
+                                       sensor=f"ScanNet, Structure sensor {self.width}x{self.height}")
         for mesh in (root / f"{self.name}_vh_clean_2.ply", root.parent / f"{self.name}_vh_clean_2.ply"):
             if mesh.is_file():
                 self._gt_mesh_path = mesh

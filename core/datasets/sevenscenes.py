@@ -35,6 +35,7 @@ from .images import (
     read_text_matrix,
     validate_intrinsics,
 )
+from .profile import KINECT_MAX_DEPTH_M, CaptureProfile
 
 __all__ = ["SEVENSCENES_INTRINSICS", "SevenScenesCapture", "read_pose_matrix"]
 
@@ -95,6 +96,8 @@ class SevenScenesCapture(BaseCapture):
             else:
                 K = make_intrinsics(*SEVENSCENES_INTRINSICS)
         self.K = validate_intrinsics(K, self.width, self.height, source)
+        self._profile = CaptureProfile("sevenscenes", KINECT_MAX_DEPTH_M, color_registered=False,
+                                       sensor=f"7-Scenes, Kinect v1 {self.width}x{self.height}")
 
     def _file(self, i: int, suffix: str) -> Path:
         return self.path / f"frame-{self._ids[i]:06d}.{suffix}"

@@ -45,6 +45,7 @@ from .images import (
     resize_color,
     validate_intrinsics,
 )
+from .profile import LIDAR_MAX_DEPTH_M, CaptureProfile
 
 __all__ = ["StrayCapture", "VideoFrameReader", "STRAY_COLOR_SIZE"]
 
@@ -203,6 +204,9 @@ class StrayCapture(BaseCapture):
         self.K = validate_intrinsics(
             scale_intrinsics(K_color, color_wh, (self.width, self.height)), self.width, self.height, K_path
         )
+        self._profile = CaptureProfile(
+            "iphone", LIDAR_MAX_DEPTH_M, has_confidence=(root / "confidence").is_dir(),
+            has_color=self._video is not None, sensor=f"Stray Scanner, iPhone LiDAR {self.width}x{self.height}")
 
     def _depth_path(self, i: int) -> Path:
         stem = self.path / "depth" / f"{self._ids[i]:06d}"

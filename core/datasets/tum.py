@@ -23,6 +23,10 @@ benchmark evaluates trajectories at colour times); the depth time is kept in ``m
 Entries listed in the text files whose image is absent on disk (trimmed sequences) are skipped before
 association unless ``strict=True``; ``skipped_missing`` counts them.
 
+Profile (``capture.profile``): kind ``tum``, depth trusted to 4 m (Kinect v1), colour registered; kind
+``synthetic`` (exact depth to 10 m) when ``rgb.txt``'s header says ``voxfusion synth`` wrote it;
+``has_confidence`` when ``confidence.txt`` pairs confidence maps with the depth images.
+
 Intrinsics: TUM publishes one calibration per sensor (lens distortion is ignored here, as in most
 dense SLAM systems): fr1 ``(517.3, 516.5, 318.6, 255.3)``, fr2 ``(520.9, 521.0, 325.1, 249.7)``,
 fr3 ``(535.4, 539.2, 320.1, 247.6)`` as ``(fx, fy, cx, cy)``. With ``intrinsics=None`` the reader uses
@@ -51,6 +55,7 @@ from .images import (
     read_intrinsics_txt,
     validate_intrinsics,
 )
+from .profile import KINECT_MAX_DEPTH_M, SYNTHETIC_MAX_DEPTH_M, CaptureProfile
 
 __all__ = ["TUM_INTRINSICS", "TUMCapture", "read_tum_file_list", "associate_timestamps"]
 
@@ -132,6 +137,16 @@ def _detect_sensor(root: Path) -> str | None:
                     if m:
                         return f"fr{m.group(1)}"
     return None
+
+
+def _written_by_synth(root: Path) -> bool:
+    """Whether ``rgb.txt``'s header says ``voxfusion synth`` wrote this sequence (exact synthetic depth)."""
+    with (root / "rgb.txt").open() as f:
+        for _ in range(3):
+            line = f.readline()
+            if line.startswith("#") and "voxfusion synthetic capture" in line:
+                return True
+    return False
 
 
 def _interpolate_pose(ts: np.ndarray, T: np.ndarray, t: float) -> np.ndarray | None:
@@ -239,6 +254,13 @@ class TUMCapture(BaseCapture):
         else:
             self.frames_without_gt = tuple(range(len(self._rgb)))
         self.has_gt = gt != "none" and gt_path.is_file()
+        has_conf = any(c is not None for c in self._confidence)
+        if _written_by_synth(root):
+            self._profile = CaptureProfile("synthetic", SYNTHETIC_MAX_DEPTH_M, has_confidence=has_conf,
+                                           sensor=f"voxfusion synthetic room {self.width}x{self.height}")
+        else:
+            self._profile = CaptureProfile("tum", KINECT_MAX_DEPTH_M, has_confidence=has_conf,
+                                           sensor=f"TUM RGB-D, Kinect v1 {self.width}x{self.height}")
 
     def _existing(self, entries: list[tuple[float, str]], strict: bool) -> list[tuple[float, str]]:
         kept = []

@@ -63,9 +63,9 @@ def test_parse_overrides_nested():
 
 
 def test_every_shipped_preset_loads():
-    from voxfusion.core.slam_config import CONFIG_DIR, load_preset
+    from voxfusion.core.slam_config import KIND_PRESETS, PRESET_ALIASES, load_preset, preset_names
 
-    names = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
-    assert {"default", "cpu-small", "iphone", "iphone-small", "paper"} <= set(names)
-    for name in names:
+    names = preset_names()
+    assert {"default", "cpu", "iphone", "paper", *KIND_PRESETS.values()} <= set(names)
+    for name in [*names, *PRESET_ALIASES, *(f"{kind}+cpu" for kind in KIND_PRESETS.values())]:
         load_preset(name)

@@ -2,10 +2,11 @@
 
 Example::
 
-    voxfusion map ../shared/data/sevenscenes_redkitchen --config sevenscenes --max-frames 300 --out out/kitchen
+    voxfusion map ../shared/data/sevenscenes_redkitchen --max-frames 300 --out out/kitchen   # sevenscenes+cpu here
 
-writes ``mesh.ply``, ``voxels.npz``, ``voxels.ply``, ``checkpoint.pt``, ``trajectory.txt``,
-``timings.json`` and ``metrics.json`` (mesh accuracy / completion when the capture has a GT mesh).
+Without ``--config`` the preset follows the capture and the device, as for ``voxfusion run``. It writes
+``mesh.ply``, ``voxels.npz``, ``voxels.ply``, ``checkpoint.pt``, ``trajectory.txt``, ``timings.json`` and
+``metrics.json`` (mesh accuracy / completion when the capture has a GT mesh).
 """
 
 from __future__ import annotations
@@ -16,12 +17,12 @@ from typing import Annotated
 
 import typer
 
+from voxfusion.commands.run import config_for_capture
 from voxfusion.core.config import config_to_dict
 from voxfusion.core.datasets import open_capture
 from voxfusion.core.eval import format_table, write_json
 from voxfusion.core.reconstruct import map_capture
 from voxfusion.core.run import evaluate_mesh
-from voxfusion.core.slam_config import load_preset
 
 __all__ = ["register"]
 
@@ -31,7 +32,9 @@ def register(app: typer.Typer) -> None:
     def map_command(
         capture: Annotated[Path, typer.Argument(help="Capture folder or .r3d file (any format voxfusion reads).")],
         out: Annotated[Path, typer.Option("--out", help="Output folder.")],
-        config: Annotated[str, typer.Option("--config", help="Preset name in configs/ or a YAML path.")] = "default",
+        config: Annotated[str | None, typer.Option("--config", help="Preset in configs/ (tum, tum+cpu, ...) or a "
+                                                   "YAML path; default: chosen from the capture and the device.")]
+        = None,
         set_: Annotated[list[str] | None, typer.Option("--set", help="Override, e.g. mapping.iters=20.")] = None,
         max_frames: Annotated[int | None, typer.Option(help="Use only the first N frames.")] = None,
         stride: Annotated[int, typer.Option(help="Use every N-th frame.")] = 1,
@@ -42,8 +45,8 @@ def register(app: typer.Typer) -> None:
         overrides = list(set_ or [])
         if device:
             overrides.append(f"device={device}")
-        cfg = load_preset(config, overrides)
         cap = open_capture(capture, stride=stride, limit=max_frames)
+        cfg = config_for_capture(cap, config, overrides, device)
         result = map_capture(cap, cfg, out)
         metrics = evaluate_mesh(result.mesh, cap, len(cap), eval_samples)
         summary = result.timing_summary()

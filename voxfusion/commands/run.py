@@ -2,7 +2,11 @@
 
 Example::
 
-    voxfusion run ../shared/data/tum_fr1_desk_9frames --config tum --out out/desk
+    voxfusion run ../shared/data/tum_fr1_desk_9frames --out out/desk              # preset chosen: tum+cpu here
+    voxfusion run ../shared/data/tum_fr1_desk_9frames --config tum --out out/desk # GPU sizes: warns on a CPU
+
+Without ``--config`` the preset follows the capture's kind and the device
+(:func:`voxfusion.core.slam_config.preset_for`) and the chosen preset is printed with the reason.
 
 writes ``trajectory.txt`` (TUM), ``keyframes.json``, ``mesh.ply``, ``voxels.npz``/``.ply``,
 ``checkpoint.pt``, ``metrics.json`` (ATE, mesh metrics, timings, peak memory) and ``frames.json``.
@@ -16,11 +20,29 @@ from typing import Annotated
 import typer
 
 from voxfusion.core.datasets import open_capture
+from voxfusion.core.datasets.frame import Capture
 from voxfusion.core.eval import format_table
 from voxfusion.core.run import run_capture, timing_summary
-from voxfusion.core.slam_config import load_preset
+from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for, size_warning
 
-__all__ = ["register"]
+__all__ = ["register", "config_for_capture"]
+
+
+def config_for_capture(capture: Capture, config: str | None, overrides: list[str],
+                       device: str | None) -> VoxFusionConfig:
+    """The run's config: ``config`` (a preset name, composition or YAML path) with the capture's facts under it,
+    or, with ``config=None``, the preset :func:`preset_for` picks (its reason printed). Prints the one warning
+    of a GPU-sized config on the CPU (to stderr)."""
+    if config is None:
+        choice = preset_for(capture, device or "auto", overrides)
+        typer.echo(choice.reason)
+        cfg, name = choice.config, choice.preset
+    else:
+        cfg, name = load_preset(config, overrides, profile=capture.profile), config
+    warning = size_warning(cfg, name)
+    if warning is not None:
+        typer.secho(warning, fg=typer.colors.YELLOW, err=True)
+    return cfg
 
 
 def register(app: typer.Typer) -> None:
@@ -28,7 +50,9 @@ def register(app: typer.Typer) -> None:
     def run_command(
         capture: Annotated[Path, typer.Argument(help="Capture folder or .r3d file (any format voxfusion reads).")],
         out: Annotated[Path, typer.Option("--out", help="Output folder.")],
-        config: Annotated[str, typer.Option("--config", help="Preset name in configs/ or a YAML path.")] = "default",
+        config: Annotated[str | None, typer.Option("--config", help="Preset in configs/ (tum, tum+cpu, ...) or a "
+                                                   "YAML path; default: chosen from the capture and the device.")]
+        = None,
         set_: Annotated[list[str] | None, typer.Option("--set", help="Override, e.g. tracking.iters=20.")] = None,
         max_frames: Annotated[int | None, typer.Option(help="Use only the first N frames.")] = None,
         stride: Annotated[int, typer.Option(help="Use every N-th frame.")] = 1,
@@ -42,8 +66,8 @@ def register(app: typer.Typer) -> None:
             overrides.append(f"device={device}")
         if mode:
             overrides.append(f"mode={mode}")
-        cfg = load_preset(config, overrides)
         cap = open_capture(capture, stride=stride, limit=max_frames)
+        cfg = config_for_capture(cap, config, overrides, device)
         result = run_capture(cap, cfg, out, speed=speed)
         st = result.stats
         rows = [{"metric": k, "value": v} for k, v in timing_summary(result.slam, result.wall_s).items()]

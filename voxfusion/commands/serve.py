@@ -27,8 +27,8 @@ def serve_command(
     = Path("voxfusion-data"),
     device: Annotated[str, typer.Option(help="auto, cpu or cuda: where every session's engine runs.")] = "auto",
     config: Annotated[str | None, typer.Option("--config", help="Default preset of new sessions (configs/<name>."
-                                                                "yaml); default cpu-small on CPU, default on "
-                                                                "CUDA.")] = None,
+                                                                "yaml, or kind+cpu); default cpu on CPU, default "
+                                                                "on CUDA.")] = None,
     zenoh: Annotated[bool | None, typer.Option("--zenoh/--no-zenoh", help="Start the zenoh bridge (default: when "
                                                                             "the zenoh package is installed).")]
     = None,

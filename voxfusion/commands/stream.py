@@ -14,6 +14,11 @@ shows the frames sent, the live pose and the send rate. Then the session is fini
 ``trajectory.txt`` (TUM) and ``session.json`` (id, token, mesh location; readable by you only) are written
 to ``--out``; the session id and the mesh URL are printed, and the ATE when the capture has reference
 poses.
+
+A new session gets the capture's facts as settings under any ``--set`` (``mapping.max_depth_m``,
+``mapping.min_confidence``, ``loss.w_color``: what the reader's profile says, see
+:func:`voxfusion.core.slam_config.profile_overrides`), so it needs no preset that knows the capture; the
+server still chooses the sizes (its default preset, or ``--preset``).
 """
 
 from __future__ import annotations
@@ -51,7 +56,7 @@ def connect_client(server: str | None, zenoh_config: str | None, *, zenoh_connec
 
 
 def open_session(client: BaseClient, *, session: str | None, token: str | None, name: str | None,
-                 preset: str | None, overrides: list[str] | None, mode: str | None) -> None:
+                 preset: str | None, overrides: dict | list[str] | None, mode: str | None) -> None:
     """Attach to ``session`` (with its ``token``) or create a new session."""
     if session is not None:
         if not token:
@@ -61,6 +66,11 @@ def open_session(client: BaseClient, *, session: str | None, token: str | None, 
     if token:
         raise ValidationError("token", "--token is for an existing session: give --session too")
     client.create_session(name, overrides or None, preset=preset, mode=mode)
+
+
+def _flat(tree: dict, prefix: str = "") -> str:
+    """``{"mapping": {"max_depth_m": 4.0}}`` -> ``"mapping.max_depth_m=4.0"``."""
+    return " ".join(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else f"{prefix}{k}={v}" for k, v in tree.items())
 
 
 def _recording_references(frames: Iterator[RGBDFrame], refs: list[tuple[float, np.ndarray]]) -> Iterator[RGBDFrame]:
@@ -126,9 +136,19 @@ def register(app: typer.Typer) -> None:
             mode = "realtime" if (realtime or fps is not None) else "offline"
         client = connect_client(server, zenoh, zenoh_connect=zenoh_connect, api_key=api_key,
                                 depth_encoding=depth_encoding)
+        overrides: dict | list[str] | None = set_
+        if session is None:
+            from voxfusion.core.config import merge_dicts, parse_overrides
+            from voxfusion.core.slam_config import profile_overrides
+
+            facts = profile_overrides(cap.profile)
+            if facts:
+                overrides = merge_dicts(facts, parse_overrides(set_ or []))
+                typer.echo(f"capture: {cap.profile.sensor or cap.name} ({cap.profile.describe()}); session settings "
+                           f"from it: {_flat(facts)}")
         with client:
             open_session(client, session=session, token=token, name=name or (capture.name if capture else "synthetic"),
-                         preset=preset, overrides=set_, mode=mode)
+                         preset=preset, overrides=overrides, mode=mode)
             typer.echo(f"session {client.session.id}")
             if out is not None:
                 from voxfusion.clients.stream import write_session_file

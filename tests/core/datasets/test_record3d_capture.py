@@ -145,3 +145,9 @@ def test_bad_entries_are_named(tmp_path: Path):
             zf.writestr(n, data)
     with pytest.raises(CaptureError, match="LZFSE"):
         Record3DCapture(path)[1]
+
+
+@pytest.mark.parametrize("conf", [True, False])
+def test_profile_lidar_confidence_when_the_archive_has_it(tmp_path: Path, conf: bool):
+    p = Record3DCapture(_write_r3d(tmp_path / "scan.r3d", n=1, conf=conf)).profile
+    assert (p.kind, p.max_depth_m, p.has_confidence, p.has_color) == ("iphone", 5.0, conf, True)

@@ -108,3 +108,11 @@ def test_bad_layouts(tmp_path: Path):
     cv2.imwrite(str(root / "results" / "depth000000.png"), np.zeros((30, 40), np.uint8))
     with pytest.raises(CaptureFormatError, match="16-bit"):
         cap[0]
+
+
+def test_profile_replica_and_our_synthetic_layout(tmp_path: Path):
+    root, _ = _write_replica(tmp_path / "room0", n=1, size=(1200, 680))
+    p = ReplicaCapture(root).profile
+    assert (p.kind, p.max_depth_m, p.color_registered) == ("replica", 10.0, True)
+    (root / "gt_mesh.ply").write_text("ply\n")  # what `voxfusion synth --layout replica` leaves beside it
+    assert ReplicaCapture(root).profile.kind == "synthetic"

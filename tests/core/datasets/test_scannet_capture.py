@@ -86,3 +86,8 @@ def test_bad_exports(tmp_path: Path):
         p.unlink()
     with pytest.raises(CaptureFormatError, match="no <id>.png"):
         ScanNetCapture(root)
+
+
+def test_profile_depth_range_and_approximate_registration(tmp_path: Path):
+    p = ScanNetCapture(_write_scannet(tmp_path / "scene0000_00")).profile
+    assert (p.kind, p.max_depth_m, p.has_confidence, p.color_registered) == ("scannet", 5.0, False, False)

@@ -109,3 +109,8 @@ def test_non_finite_pose_gives_none(tmp_path: Path):
     root = _write_7scenes(tmp_path / "seq", n=1)
     np.savetxt(root / "frame-000000.pose.txt", np.full((4, 4), -np.inf))
     assert SevenScenesCapture(root)[0].T_world_cam is None
+
+
+def test_profile_says_colour_is_not_registered(tmp_path: Path):
+    p = SevenScenesCapture(_write_7scenes(tmp_path / "seq-01", n=1)).profile
+    assert (p.kind, p.max_depth_m, p.has_confidence, p.color_registered) == ("sevenscenes", 4.0, False, False)

@@ -149,3 +149,9 @@ def test_capture_with_video_pickles(tmp_path: Path):
     clone = pickle.loads(pickle.dumps(cap))
     np.testing.assert_array_equal(clone[1].color, first)
     np.testing.assert_array_equal(clone[0].depth_m, cap[0].depth_m)
+
+
+@pytest.mark.parametrize("video", [True, False])
+def test_profile_lidar_with_confidence_and_colour_only_with_the_video(tmp_path: Path, video: bool):
+    p = StrayCapture(_write_stray(tmp_path / "scan", n=2, video=video)).profile
+    assert (p.kind, p.max_depth_m, p.has_confidence, p.has_color) == ("iphone", 5.0, True, video)

@@ -241,3 +241,11 @@ def test_confidence_list_and_gt_mesh_extensions(tmp_path: Path):
     cv2.imwrite(str(root / "confidence" / "1.000000.png"), np.full((H, W), 9, np.uint8))
     with pytest.raises(CaptureFormatError, match="0/1/2"):
         cap[0]
+
+
+def test_profile_kinect_depth_range_and_confidence_file(tmp_path: Path):
+    cap = TUMCapture(_write_tum(tmp_path / "seq", [1.0, 1.1], [1.0, 1.1]))
+    p = cap.profile
+    assert (p.kind, p.max_depth_m, p.has_confidence, p.has_color, p.color_registered) == ("tum", 4.0, False,
+                                                                                          True, True)
+    assert "Kinect" in p.sensor

@@ -1,0 +1,514 @@
+"""GPU benchmark suite: the engine's speeds on one CUDA device, in one command.
+
+Usage (from the repository root)::
+
+    make bench-gpu                          # = python bench/gpu_suite.py: needs CUDA, ~10-15 min
+    python bench/gpu_suite.py --smoke       # any machine (CPU): the same code paths at tiny sizes, seconds
+    python bench/gpu_suite.py --capacity-max 8 --skip sevenscenes
+
+Sections (every timed region sits between ``torch.cuda.synchronize()`` calls, after warm-up):
+
+* ``iterations``: ms per tracking iteration (each ``tracking.method`` the engine has) and per mapping
+  iteration (:meth:`Mapper.optimize`) at the ``paper`` preset, against a map built from the first frames of
+  the 640x480 synthetic room. The paper reports 12 / 55 ms on an RTX 3090.
+* ``realtime``: realtime sessions (:class:`SlamSystem`, ``mode: realtime``, the preset :func:`preset_for`
+  picks) fed at 30 Hz, on the 640x480 synthetic room and on 7-Scenes redkitchen (skipped when
+  ``../shared/data`` is absent): tracking rate (frames tracked / s of feeding), mapping rounds / s, dropped
+  frames, pose latency. Frames are decoded before feeding; a capture shorter than the feed is played back
+  and forth (re-stamped, so motion stays continuous).
+* ``render``: latency of a 256x192 depth image (:meth:`SlamSystem.render_depth`, AR occlusion) of the
+  synthetic session's final map; ``mesh``: :meth:`SlamSystem.mesh` time and size.
+* ``memory``: peak ``torch.cuda.max_memory_allocated`` (and RSS) of each section.
+* ``capacity``: how many concurrent realtime sessions the GPU holds at 30 Hz tracking: 1, 2, 4, ... sessions
+  (one process each, as the server runs them; ``--capacity-isolation thread`` for one process), each fed
+  30 Hz for ``--capacity-seconds``; a session *holds* 30 Hz when it tracks at least 97 % of that
+  (:data:`HOLD_FRACTION`). It stops at the first count where any session falls below, or at
+  ``--capacity-max`` / ``--capacity-budget-s``.
+
+Writes ``bench/results/gpu-<gpu name slug>.json`` (``--smoke``: a temporary folder) through
+:func:`voxfusion.core.eval.report.write_json`, with :func:`bench.machine.machine_info`, and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import queue
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import typing
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT))
+
+import torch  # noqa: E402
+
+from bench.machine import PeakMemory, machine_info  # noqa: E402
+from voxfusion.core.config import apply_overrides  # noqa: E402
+from voxfusion.core.datasets import open_capture  # noqa: E402
+from voxfusion.core.datasets.frame import RGBDFrame  # noqa: E402
+from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
+from voxfusion.core.eval.report import format_table, write_json  # noqa: E402
+from voxfusion.core.geometry import scale_intrinsics  # noqa: E402
+from voxfusion.core.slam import SlamSystem  # noqa: E402
+from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for  # noqa: E402
+from voxfusion.core.tracking import Tracker, TrackingConfig  # noqa: E402
+
+SEVENSCENES = REPO_ROOT.parent / "shared" / "data" / "sevenscenes_redkitchen"
+HOLD_FRACTION = 0.97
+"""A session holds the feed rate when it tracks at least this fraction of it (30 Hz -> 29.1 Hz)."""
+PAPER_RTX3090_MS = {"tracking_ms_per_iter": 12.0, "mapping_ms_per_iter": 55.0}
+"""Vox-Fusion's own figures (paper, Replica, RTX 3090)."""
+TINY = ["mapping.first_frame_iters=10", "mapping.iters=1", "mapping.rays_per_frame=64", "tracking.iters=2",
+        "tracking.rays=64", "field.sdf_hidden=16", "field.color_hidden=16", "field.geo_feature_dim=8", "mesh_res=2"]
+"""``--smoke`` overrides on top of every preset: the same code, tiny networks and ray counts."""
+
+
+@dataclass(frozen=True)
+class SuiteSizes:
+    """How much each section does (``FULL`` on a GPU, ``SMOKE`` on a CPU in seconds)."""
+
+    width: int
+    height: int
+    """Synthetic room size in pixels."""
+    unique_frames: int
+    """Frames decoded per capture (fed back and forth when the feed is longer)."""
+    map_frames: int
+    """``iterations``: frames processed (offline) to build the map before timing."""
+    timed_tracks: int
+    """``iterations``: frames tracked (timed) per method, after one warm-up frame."""
+    mapping_iters: int
+    """``iterations``: timed mapping iterations, after ``warmup_iters``."""
+    warmup_iters: int
+    realtime_s: float
+    """``realtime``: seconds of feeding per capture."""
+    feed_hz: float
+    render_wh: tuple[int, int]
+    render_repeats: int
+    capacity_s: float
+    """``capacity``: seconds of feeding per session per round."""
+    overrides: tuple[str, ...] = ()
+    """Added to every preset."""
+    capacity_max: int = 64
+    """``capacity``: most concurrent sessions tried (``--capacity-max`` lowers it)."""
+
+
+FULL = SuiteSizes(640, 480, 120, 5, 10, 30, 5, 10.0, 30.0, (256, 192), 30, 10.0)
+SMOKE = SuiteSizes(32, 24, 6, 2, 2, 2, 1, 0.3, 30.0, (32, 24), 2, 0.3, tuple(TINY), capacity_max=2)
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """One realtime session to run (JSON-able: capacity workers get it on their command line)."""
+
+    capture: str
+    """``synthetic`` (the room at ``width`` x ``height``) or a capture path."""
+    width: int
+    height: int
+    unique_frames: int
+    seconds: float
+    feed_hz: float
+    device: str
+    overrides: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class RealtimeResult:
+    """One realtime session fed at ``feed_hz`` for ``seconds`` (after its first frame built the map)."""
+
+    capture: str
+    preset: str
+    frames_fed: int
+    seconds: float
+    feed_hz: float
+    tracking_hz: float
+    """Frames tracked per second of feeding (the first, map-building frame not counted)."""
+    mapping_rounds_per_s: float
+    """Map versions published per second (one per mapping round)."""
+    frames_mapped: int
+    dropped: int
+    lost: int
+    latency_ms: float
+    """Mean time from submit to tracked pose over the last 100 frames."""
+    first_map_s: float
+    """Time until the first frame's map was published (not part of the rates)."""
+    keyframes: int
+    voxels: int
+
+    @property
+    def holds(self) -> bool:
+        return self.tracking_hz >= HOLD_FRACTION * self.feed_hz
+
+
+def _sync() -> None:
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
+def _timed(fn: Callable[[], object]) -> tuple[object, float]:
+    """``(fn(), milliseconds)`` with the device synchronised before and after."""
+    _sync()
+    t0 = time.perf_counter()
+    out = fn()
+    _sync()
+    return out, 1e3 * (time.perf_counter() - t0)
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
+
+
+def load_frames(spec: SessionSpec) -> tuple[list[RGBDFrame], str, object]:
+    """Decoded frames of the spec's capture, its display name and the capture (for :func:`preset_for`)."""
+    if spec.capture == "synthetic":
+        cap = SyntheticCapture(SyntheticConfig(n_frames=spec.unique_frames, width=spec.width, height=spec.height))
+    else:
+        cap = open_capture(spec.capture, limit=spec.unique_frames)
+    return [cap[i] for i in range(len(cap))], cap.name, cap
+
+
+def feed_order(frames: list[RGBDFrame], n: int, feed_hz: float) -> list[RGBDFrame]:
+    """``n`` frames played back and forth through ``frames``, re-indexed and re-stamped at ``feed_hz``."""
+    if len(frames) == 1:
+        order = [0] * n
+    else:
+        period = 2 * (len(frames) - 1)
+        order = [k % period if k % period < len(frames) else period - k % period for k in range(n)]
+    return [frames[j].with_(index=k, timestamp_s=round(k / feed_hz, 6)) for k, j in enumerate(order)]
+
+
+def session_config(spec: SessionSpec, capture: object) -> tuple[VoxFusionConfig, str]:
+    """The preset :func:`preset_for` picks for the capture on the spec's device, in realtime mode."""
+    choice = preset_for(capture, spec.device, [*spec.overrides, f"device={spec.device}", "mode=realtime"])
+    return choice.config, choice.preset
+
+
+def run_realtime(frames: list[RGBDFrame], config: VoxFusionConfig, preset: str, name: str, seconds: float,
+                 feed_hz: float, first_map_timeout_s: float = 600.0) -> tuple[RealtimeResult, SlamSystem]:
+    """Feed ``frames`` (see :func:`feed_order`) to a realtime :class:`SlamSystem` at ``feed_hz``.
+
+    Frame 0 is submitted first and the feed starts once its map is published; then ``seconds * feed_hz``
+    frames follow at their scheduled times. The system is returned still running (``finish`` or ``close`` it).
+    """
+    n = 1 + max(1, round(seconds * feed_hz))
+    fed = feed_order(frames, n, feed_hz)
+    slam = SlamSystem(config)
+    t_first = time.perf_counter()
+    slam.submit(fed[0])
+    while slam.snapshot is None:
+        if slam.error is not None or time.perf_counter() - t_first > first_map_timeout_s:
+            slam.close()
+            raise RuntimeError(f"{name}: the first frame's map did not appear ({slam.error!r})")
+        time.sleep(0.002)
+    first_map_s = time.perf_counter() - t_first
+    s0 = slam.stats()
+    t0 = time.perf_counter()
+    for k, frame in enumerate(fed[1:]):
+        wait = t0 + k / feed_hz - time.perf_counter()
+        if wait > 0:
+            time.sleep(wait)
+        slam.submit(frame)
+    time.sleep(max(0.0, t0 + (n - 1) / feed_hz - time.perf_counter()))  # the last frame's own period
+    window = time.perf_counter() - t0
+    s1 = slam.stats()
+    result = RealtimeResult(
+        capture=name, preset=preset, frames_fed=n - 1, seconds=window, feed_hz=feed_hz,
+        tracking_hz=(s1.frames_tracked - s0.frames_tracked) / window,
+        mapping_rounds_per_s=(s1.map_version - s0.map_version) / window,
+        frames_mapped=s1.frames_mapped - s0.frames_mapped, dropped=s1.frames_dropped - s0.frames_dropped,
+        lost=s1.frames_lost - s0.frames_lost, latency_ms=s1.latency_ms, first_map_s=first_map_s,
+        keyframes=s1.keyframes, voxels=s1.voxels)
+    return result, slam
+
+
+def tracker_methods() -> list[str]:
+    """The tracking methods the engine has (``TrackingConfig.method``'s choices; ``render`` before it existed)."""
+    hint = typing.get_type_hints(TrackingConfig).get("method")
+    return list(typing.get_args(hint)) if hint is not None else ["render"]
+
+
+def measure_iterations(frames: list[RGBDFrame], config: VoxFusionConfig, sizes: SuiteSizes) -> list[dict]:
+    """ms per tracking iteration (each method) and per mapping iteration on a map of ``sizes.map_frames``."""
+    slam = SlamSystem(apply_overrides(config, ["mode=offline"]))
+    for f in frames[:sizes.map_frames]:
+        slam.process(f)
+    snap, mapper = slam.snapshot, slam.mapper
+    rows = []
+    tracked = frames[sizes.map_frames - 1:sizes.map_frames + sizes.timed_tracks + 1]
+    for method in tracker_methods():
+        has_methods = "method" in {f.name for f in dataclasses.fields(TrackingConfig)}
+        tcfg = dataclasses.replace(config.tracking, method=method) if has_methods else config.tracking
+        tracker = Tracker(tcfg, config.render, mapper.field_config.use_color, seed=config.seed)
+        tracker.set_map(snap.voxels, snap.decoder)
+        times, iters = [], []
+        for k, (prev, cur) in enumerate(zip(tracked[:-1], tracked[1:], strict=True)):
+            data = slam._to_device(cur)  # the engine's own frame preparation (range, confidence, filters)
+            res, ms = _timed(lambda t=tracker, d=data, p=prev: t.track(d, p.T_world_cam))
+            if k > 0:  # the first frame is warm-up
+                times.append(ms)
+                iters.append(res.iterations)
+        rows.append({"stage": f"tracking ({method})", "ms_per_iter": sum(times) / max(1, sum(iters)),
+                     "iters": sum(iters), "frames": len(times), "ms_per_frame": statistics.mean(times),
+                     "paper_rtx3090_ms": PAPER_RTX3090_MS["tracking_ms_per_iter"]})
+    mapper.optimize(sizes.warmup_iters)
+    _, ms = _timed(lambda: mapper.optimize(sizes.mapping_iters))
+    rows.append({"stage": "mapping", "ms_per_iter": ms / sizes.mapping_iters, "iters": sizes.mapping_iters,
+                 "keyframes": len(mapper.keyframes), "voxels": mapper.voxels.n_voxels,
+                 "paper_rtx3090_ms": PAPER_RTX3090_MS["mapping_ms_per_iter"]})
+    slam.close()
+    return rows
+
+
+def measure_render_and_mesh(slam: SlamSystem, frames: list[RGBDFrame], sizes: SuiteSizes) -> dict:
+    """Median / p90 latency of a ``render_wh`` depth image at a mid-capture pose, then one mesh extraction."""
+    f = frames[len(frames) // 2]
+    w, h = sizes.render_wh
+    K = scale_intrinsics(f.K, (f.width, f.height), (w, h))
+    for _ in range(2):
+        slam.render_depth(K, f.T_world_cam, w, h)
+    times = sorted(_timed(lambda: slam.render_depth(K, f.T_world_cam, w, h))[1] for _ in range(sizes.render_repeats))
+    mesh, mesh_ms = _timed(slam.mesh)
+    return {"render_wh": [w, h], "render_ms_median": statistics.median(times),
+            "render_ms_p90": times[min(len(times) - 1, int(0.9 * len(times)))], "render_repeats": len(times),
+            "mesh_ms": mesh_ms, "mesh_vertices": len(mesh.vertices), "mesh_faces": len(mesh.faces)}
+
+
+# ----------------------------------------------------------------------------------------- capacity
+
+
+def _worker(spec_json: str, stdin=sys.stdin, stdout=sys.stdout) -> int:
+    """A capacity worker: decode frames, say ``READY``, wait for a line on stdin, run one session, print
+    ``RESULT <json>``."""
+    fields = json.loads(spec_json)
+    spec = SessionSpec(**{**fields, "overrides": tuple(fields.get("overrides", ()))})
+    torch.set_num_threads(1)
+    frames, name, cap = load_frames(spec)
+    config, preset = session_config(spec, cap)
+    print("READY", file=stdout, flush=True)
+    stdin.readline()
+    result, slam = run_realtime(frames, config, preset, name, spec.seconds, spec.feed_hz)
+    slam.close()
+    print("RESULT " + json.dumps(dataclasses.asdict(result)), file=stdout, flush=True)
+    return 0
+
+
+def _run_processes(spec: SessionSpec, n: int, timeout_s: float) -> list[RealtimeResult]:
+    """``n`` worker processes, started together once all are ready; results of those that finished."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(dataclasses.asdict(spec))]
+    procs = [subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT)
+             for _ in range(n)]
+    lines: queue.Queue[tuple[int, str]] = queue.Queue()
+    for i, p in enumerate(procs):
+        threading.Thread(target=lambda i=i, p=p: [lines.put((i, ln.strip())) for ln in p.stdout], daemon=True).start()
+    results: dict[int, RealtimeResult] = {}
+    ready: set[int] = set()
+    deadline = time.monotonic() + timeout_s
+    try:
+        while len(results) < n and time.monotonic() < deadline:
+            if all(p.poll() is not None for p in procs) and lines.empty():
+                break
+            try:
+                i, line = lines.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            if line == "READY":
+                ready.add(i)
+                if len(ready) == n:
+                    for p in procs:
+                        p.stdin.write("go\n")
+                        p.stdin.flush()
+            elif line.startswith("RESULT "):
+                results[i] = RealtimeResult(**json.loads(line[len("RESULT "):]))
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+            p.wait()
+    return list(results.values())
+
+
+def _run_threads(spec: SessionSpec, n: int) -> list[RealtimeResult]:
+    """``n`` sessions in this process, one feeder thread each, sharing the decoded frames."""
+    frames, name, cap = load_frames(spec)
+    config, preset = session_config(spec, cap)
+    results: list[RealtimeResult] = []
+    lock = threading.Lock()
+
+    def one() -> None:
+        result, slam = run_realtime(frames, config, preset, name, spec.seconds, spec.feed_hz)
+        slam.close()
+        with lock:
+            results.append(result)
+
+    threads = [threading.Thread(target=one, daemon=True) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return results
+
+
+def measure_capacity(spec: SessionSpec, max_sessions: int, budget_s: float, isolation: str) -> dict:
+    """Sessions held at the feed rate: 1, 2, 4, ... until one falls below (see the module docstring)."""
+    rows, held, stop = [], 0, f"reached --capacity-max {max_sessions}"
+    t_start = time.monotonic()
+    n = 1
+    while n <= max_sessions:
+        if time.monotonic() - t_start > budget_s:
+            stop = f"time budget of {budget_s:g} s spent"
+            break
+        if isolation == "process":
+            results = _run_processes(spec, n, timeout_s=max(300.0, 20 * spec.seconds))
+        else:
+            results = _run_threads(spec, n)
+        rates = [r.tracking_hz for r in results] or [0.0]
+        ok = len(results) == n and all(r.holds for r in results)
+        rows.append({"sessions": n, "finished": len(results), "min_tracking_hz": min(rates),
+                     "mean_tracking_hz": statistics.mean(rates), "dropped": sum(r.dropped for r in results),
+                     "mean_latency_ms": statistics.mean([r.latency_ms for r in results]) if results else None,
+                     "holds": ok})
+        print(f"  capacity: {n} session(s): min {min(rates):.1f} Hz, {'holds' if ok else 'falls below'} "
+              f"{spec.feed_hz:g} Hz", flush=True)
+        if not ok:
+            stop = f"{n} sessions fall below {HOLD_FRACTION:.0%} of {spec.feed_hz:g} Hz"
+            break
+        held = n
+        n *= 2
+    return {"sessions_held": held, "feed_hz": spec.feed_hz, "hold_fraction": HOLD_FRACTION, "isolation": isolation,
+            "seconds_per_round": spec.seconds, "stopped_because": stop, "rows": rows}
+
+
+# ---------------------------------------------------------------------------------------------- main
+
+
+def _section(name: str, memory: dict, fn: Callable[[], object]) -> object:
+    """``fn()``, with its peak GPU memory and RSS recorded in ``memory[name]``."""
+    print(f"[{name}]", flush=True)
+    t0 = time.perf_counter()
+    with PeakMemory(interval_s=0.05) as mem:
+        out = fn()
+    print(f"  {time.perf_counter() - t0:.1f} s", flush=True)
+    memory[name] = {"peak_gpu_mb": mem.result.cuda_peak_mb, "peak_rss_mb": mem.result.peak_rss_mb}
+    return out
+
+
+def run_suite(args: argparse.Namespace) -> dict:
+    """Every section that ``args`` does not skip; returns the JSON-ready result."""
+    sizes = SMOKE if args.smoke else FULL
+    device = "cpu" if args.smoke else "cuda"
+    overrides = [*sizes.overrides, *args.set]
+    results: dict = {}
+    memory: dict = {}
+    synth = SessionSpec("synthetic", sizes.width, sizes.height, sizes.unique_frames, sizes.realtime_s, sizes.feed_hz,
+                        device, tuple(overrides))
+    frames, name, cap = load_frames(synth)
+    if "iterations" not in args.skip:
+        iter_cfg = load_preset(args.iter_preset, [*overrides, f"device={device}"], profile=cap.profile)
+        results["iterations"] = _section("iterations", memory, lambda: measure_iterations(frames, iter_cfg, sizes))
+    if "realtime" not in args.skip:
+        specs = [("synthetic", synth)]
+        if "sevenscenes" not in args.skip and not args.smoke and SEVENSCENES.is_dir():
+            specs.append(("sevenscenes", dataclasses.replace(synth, capture=str(SEVENSCENES),
+                                                             unique_frames=max(sizes.unique_frames, 300))))
+        results["realtime"] = {}
+        for key, spec in specs:
+            fr, nm, cp = (frames, name, cap) if key == "synthetic" else load_frames(spec)
+            config, preset = session_config(spec, cp)
+            res, slam = _section(f"realtime/{key}", memory, lambda fr=fr, c=config, p=preset, nm=nm, s=spec:
+                                 run_realtime(fr, c, p, nm, s.seconds, s.feed_hz))
+            results["realtime"][key] = dataclasses.asdict(res)
+            slam.finish(timeout_s=600)
+            if key == "synthetic" and "render" not in args.skip:
+                results["render_mesh"] = _section("render_mesh", memory,
+                                                  lambda s=slam, fr=fr: measure_render_and_mesh(s, fr, sizes))
+            slam.close()
+    if "capacity" not in args.skip:
+        # 30 distinct frames per session (played back and forth): every worker renders its own before it starts
+        spec = dataclasses.replace(synth, seconds=args.capacity_seconds or sizes.capacity_s,
+                                   unique_frames=min(sizes.unique_frames, 30))
+        isolation = args.capacity_isolation or ("thread" if args.smoke else "process")
+        results["capacity"] = _section("capacity", memory, lambda: measure_capacity(
+            spec, min(args.capacity_max, sizes.capacity_max), args.capacity_budget_s, isolation))
+    results["memory"] = memory
+    return results
+
+
+def _print_tables(results: dict) -> None:
+    rows = []
+    for r in results.get("iterations", []):
+        rows.append({"what": f"{r['stage']} [ms/iter]", "value": r["ms_per_iter"],
+                     "paper RTX 3090": r["paper_rtx3090_ms"]})
+    for key, r in results.get("realtime", {}).items():
+        rows += [{"what": f"realtime {key}: tracking [Hz] (fed {r['feed_hz']:g})", "value": r["tracking_hz"]},
+                 {"what": f"realtime {key}: mapping rounds [1/s]", "value": r["mapping_rounds_per_s"]},
+                 {"what": f"realtime {key}: dropped / lost", "value": f"{r['dropped']} / {r['lost']}"},
+                 {"what": f"realtime {key}: pose latency [ms]", "value": r["latency_ms"]}]
+    if "render_mesh" in results:
+        rm = results["render_mesh"]
+        rows += [{"what": f"render {rm['render_wh'][0]}x{rm['render_wh'][1]} depth [ms] (median)",
+                  "value": rm["render_ms_median"]},
+                 {"what": f"mesh extraction [ms] ({rm['mesh_faces']} faces)", "value": rm["mesh_ms"]}]
+    if "capacity" in results:
+        c = results["capacity"]
+        rows.append({"what": f"sessions held at {c['feed_hz']:g} Hz ({c['isolation']} per session)",
+                     "value": c["sessions_held"]})
+    for name, m in results.get("memory", {}).items():
+        rows.append({"what": f"peak GPU memory [MB] ({name})", "value": m["peak_gpu_mb"]})
+    print(format_table(rows, columns=["what", "value", "paper RTX 3090"], float_fmt=".2f"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--smoke", action="store_true", help="CPU, tiny config and sizes, output to a temp folder")
+    ap.add_argument("--out", type=Path, default=None, help="JSON path (default bench/results/gpu-<gpu>.json)")
+    ap.add_argument("--iter-preset", default="paper", help="preset of the iterations section (default paper)")
+    ap.add_argument("--set", action="append", default=[], help="override for every config, e.g. tracking.rays=512")
+    ap.add_argument("--skip", nargs="*", default=[], choices=["iterations", "realtime", "sevenscenes", "render",
+                                                              "capacity"])
+    ap.add_argument("--capacity-max", type=int, default=64, help="most concurrent sessions tried")
+    ap.add_argument("--capacity-seconds", type=float, default=None, help="feeding per round (default 10 s)")
+    ap.add_argument("--capacity-budget-s", type=float, default=900.0, help="no new round after this many seconds")
+    ap.add_argument("--capacity-isolation", choices=["process", "thread"], default=None,
+                    help="one process per session (default; as the server) or threads in this process (--smoke)")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker is not None:
+        return _worker(args.worker)
+    if not args.smoke and not torch.cuda.is_available():
+        print("bench-gpu needs a CUDA device and torch.cuda.is_available() is False on this machine "
+              f"(torch {torch.__version__}, CUDA build: {torch.version.cuda}). On a CPU, "
+              "`python bench/gpu_suite.py --smoke` runs the same code at tiny sizes.", file=sys.stderr)
+        return 2
+    torch.manual_seed(0)
+    machine = machine_info()
+    gpu = machine["cuda_device"]["name"] if machine.get("cuda_device") else "cpu-smoke"
+    out = args.out or (Path(tempfile.mkdtemp(prefix="gpu-suite-")) / "gpu-cpu-smoke.json" if args.smoke
+                       else REPO_ROOT / "bench" / "results" / f"gpu-{_slug(gpu)}.json")
+    print(f"gpu suite on {gpu} ({'smoke: tiny sizes' if args.smoke else 'full sizes'})", flush=True)
+    t0 = time.perf_counter()
+    results = run_suite(args)
+    _print_tables(results)
+    write_json(out, {
+        "benchmark": "gpu_suite", "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "command": "python bench/gpu_suite.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "smoke": args.smoke, "wall_s": time.perf_counter() - t0, "machine": machine,
+        "sizes": dataclasses.asdict(SMOKE if args.smoke else FULL), "iter_preset": args.iter_preset,
+        "tracker_methods": tracker_methods(), "paper_rtx3090_ms": PAPER_RTX3090_MS, **results,
+    })
+    print(f"\nwrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

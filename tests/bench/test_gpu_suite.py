@@ -1,0 +1,59 @@
+"""bench/gpu_suite.py: the smoke mode runs every section on the CPU; the capacity worker's protocol; the refusal
+without CUDA; the back-and-forth feed."""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from bench import gpu_suite
+from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
+
+
+def test_smoke_runs_every_section_and_writes_json(tmp_path: Path):
+    out = tmp_path / "gpu-smoke.json"
+    assert gpu_suite.main(["--smoke", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["smoke"] is True and result["machine"]["cpu_model"]
+    stages = [r["stage"] for r in result["iterations"]]
+    assert stages == [f"tracking ({m})" for m in gpu_suite.tracker_methods()] + ["mapping"]
+    assert all(r["ms_per_iter"] > 0 and r["iters"] > 0 for r in result["iterations"])
+    rt = result["realtime"]["synthetic"]
+    assert rt["frames_fed"] == round(gpu_suite.SMOKE.realtime_s * 30) and rt["preset"] == "synthetic+cpu"
+    assert 0 <= rt["tracking_hz"] <= 31  # a busy CI machine may track none of the 9 frames in 0.3 s
+    assert result["render_mesh"]["render_wh"] == list(gpu_suite.SMOKE.render_wh)
+    assert result["render_mesh"]["render_ms_median"] > 0 and result["render_mesh"]["mesh_ms"] > 0
+    cap = result["capacity"]
+    assert cap["isolation"] == "thread" and 1 <= len(cap["rows"]) <= 2 and cap["rows"][0]["sessions"] == 1
+    assert set(result["memory"]) == {"iterations", "realtime/synthetic", "render_mesh", "capacity"}
+
+
+def test_capacity_worker_waits_for_go_and_reports_one_session():
+    spec = gpu_suite.SessionSpec("synthetic", 32, 24, 3, 0.1, 30.0, "cpu", tuple(gpu_suite.TINY))
+    stdout = io.StringIO()
+    assert gpu_suite._worker(json.dumps(dataclasses.asdict(spec)), io.StringIO("go\n"), stdout) == 0
+    lines = stdout.getvalue().splitlines()
+    assert lines[0] == "READY" and lines[1].startswith("RESULT ")
+    result = gpu_suite.RealtimeResult(**json.loads(lines[1][len("RESULT "):]))
+    assert result.frames_fed == 3 and result.feed_hz == 30.0 and result.preset == "synthetic+cpu"
+
+
+def test_full_suite_refuses_without_cuda(monkeypatch, capsys):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert gpu_suite.main([]) == 2
+    assert "needs a CUDA device" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("unique", [1, 3])
+def test_feed_plays_back_and_forth_with_new_stamps(unique: int):
+    frames = list(SyntheticCapture(SyntheticConfig(n_frames=unique, width=16, height=12)).frames())
+    fed = gpu_suite.feed_order(frames, 7, 30.0)
+    assert [f.index for f in fed] == list(range(7))
+    assert [f.timestamp_s for f in fed] == [round(k / 30, 6) for k in range(7)]
+    source = [next(j for j, g in enumerate(frames) if g.depth_m is f.depth_m) for f in fed]
+    assert source == ([0] * 7 if unique == 1 else [0, 1, 2, 1, 0, 1, 2])
