@@ -74,6 +74,7 @@ __all__ = [
     "run_tsdf_baseline",
     "save_result",
     "timings_summary",
+    "tsdf_render_back",
 ]
 
 _INSTALL_HINT = "pip install 'voxfusion[baseline]'"
@@ -415,6 +416,43 @@ def run_tsdf_baseline(capture: Capture, config: TSDFBaselineConfig | None = None
         config=config,
         meta={"n_voxel_blocks": n_blocks, "open3d": o3d.__version__, "capture": getattr(capture, "name", None)},
     )
+
+
+def tsdf_render_back(frame: RGBDFrame, T_world_cam: np.ndarray,
+                     config: TSDFBaselineConfig | None = None) -> np.ndarray:
+    """Integrate one frame at ``T_world_cam`` into a fresh TSDF and ray-cast its depth at the same pose.
+
+    The baseline's side of the render-back probe (``bench/bench_outliers.py``): the same model, corrections
+    and truncation as :func:`run_tsdf_baseline`, no tracking.
+
+    Returns:
+        ``[H, W]`` float32 ray-cast camera z-depth in metres, 0 where the ray found no surface.
+
+    Raises:
+        MissingDependencyError: Open3D is not installed. ShapeError: ``T_world_cam`` is not 4x4.
+    """
+    config = config if config is not None else TSDFBaselineConfig()
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ShapeError("T_world_cam", T.shape, "(4, 4)")
+    o3d = require_open3d()
+    device = _device(o3d, config.device)
+    with _quiet_open3d(o3d):
+        frames = _Frames(o3d, frame, device, config)
+        frames.set(frame)
+        model = o3d.t.pipelines.slam.Model(config.voxel_size_m, config.block_resolution, config.block_count,
+                                           o3d.core.Tensor(T), device)
+        model.update_frame_pose(0, o3d.core.Tensor(T))
+        model.integrate(frames.integrate, 1.0, config.depth_max_m, config.trunc_voxel_multiplier)
+        if config.fix_raycast_half_voxel:
+            T_raycast = T.copy()
+            T_raycast[:3, 3] += 0.5 * config.voxel_size_m
+            model.update_frame_pose(0, o3d.core.Tensor(T_raycast))
+        model.synthesize_model_frame(frames.raycast, 1.0, config.depth_min_m, config.depth_max_m,
+                                     config.trunc_voxel_multiplier, False)
+        depth = np.asarray(frames.raycast.get_data_as_image("depth").as_tensor().cpu().numpy(), np.float32)
+    depth = depth.reshape(frame.depth_m.shape)
+    return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
 
 
 def _stats_ms(a: np.ndarray) -> dict[str, float]:

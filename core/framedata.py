@@ -13,9 +13,12 @@ import numpy as np
 import torch
 
 from .datasets.frame import RGBDFrame
+from .depth_filter import DepthFilterConfig, depth_outlier_mask
 from .errors import ValidationError
 
 __all__ = ["FrameData", "PixelBatch", "frame_to_device", "sample_pixels"]
+
+_DEFAULT_DEPTH_FILTER = DepthFilterConfig()
 
 
 @dataclass
@@ -25,7 +28,8 @@ class FrameData:
     Attributes:
         index: position of the frame in its capture.
         timestamp_s: capture time (s).
-        depth_m: ``[H, W]`` float32 metres, 0 = invalid (already range- and confidence-filtered).
+        depth_m: ``[H, W]`` float32 metres, 0 = invalid (already range-, confidence- and outlier-filtered,
+            see :func:`frame_to_device`).
         color: ``[H, W, 3]`` float32 RGB in [0, 1], or None for depth-only captures.
         K: ``[3, 3]`` float64 intrinsics for ``(W, H)``.
         valid_idx: ``[P]`` int64 flat indices ``v * W + u`` of pixels with valid depth.
@@ -63,15 +67,25 @@ class PixelBatch:
 
 def frame_to_device(frame: RGBDFrame, device: torch.device | str, min_depth_m: float = 0.05,
                     max_depth_m: float = 10.0, min_confidence: int | None = None,
-                    use_color: bool = True) -> FrameData:
-    """Move a frame to ``device``; depth outside ``[min_depth_m, max_depth_m]`` (and pixels below
-    ``min_confidence`` when the frame has a confidence map) become invalid."""
+                    use_color: bool = True,
+                    depth_filter: DepthFilterConfig | None = _DEFAULT_DEPTH_FILTER) -> FrameData:
+    """Move a frame to ``device`` and clean its depth; the one place frames become tensors, so tracking
+    and mapping see the same depth.
+
+    Depth becomes invalid (0) where it is non-finite or outside ``[min_depth_m, max_depth_m]``, below
+    ``min_confidence`` when the frame has a confidence map, and, after those, where the neighbourhood
+    support filter ``depth_filter`` finds no agreeing neighbours (isolated outliers, flying pixels; see
+    :mod:`.depth_filter`; None or ``enabled=False`` turns it off). Invalid pixels neither allocate voxels
+    nor supervise rays.
+    """
     depth = np.asarray(frame.depth_m, dtype=np.float32)
     ok = np.isfinite(depth) & (depth >= min_depth_m) & (depth <= max_depth_m)
     if min_confidence is not None and frame.confidence is not None:
         ok &= frame.confidence >= min_confidence
     depth = np.where(ok, depth, 0.0).astype(np.float32)
     d = torch.from_numpy(depth).to(device)
+    if depth_filter is not None and depth_filter.enabled:
+        d = torch.where(depth_outlier_mask(d, depth_filter), d, torch.zeros_like(d))
     color = None
     if use_color and frame.color is not None:
         color = torch.from_numpy(np.ascontiguousarray(frame.color)).to(device).float() / 255.0

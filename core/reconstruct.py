@@ -95,7 +95,8 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
             bar.update(1)
             continue
         data = frame_to_device(frame, mapper.device, config.mapping.min_depth_m, config.mapping.max_depth_m,
-                               config.mapping.min_confidence, use_color=mapper.field_config.use_color)
+                               config.mapping.min_confidence, use_color=mapper.field_config.use_color,
+                               depth_filter=config.mapping.depth_filter)
         if data.n_valid == 0:
             skipped += 1
             bar.update(1)

@@ -20,7 +20,9 @@ VOXEL_FORMATS = ("npz", "ply")
 def voxels_npz_bytes(voxel_map: VoxelMap, decoder: torch.nn.Module | None = None) -> bytes:
     """NPZ with ``morton_codes [M]`` int64, ``voxel_coords [M, 3]`` int64, ``centres_m [M, 3]`` float32,
     ``voxel_size_m`` (scalar), ``vertex_codes [V]``, ``voxel_vertex_ids [M, 8]``, ``embeddings [V, D]``
-    float32 and, with a decoder, one ``decoder/<name>`` array per parameter."""
+    float32, the observation evidence ``voxel_hits [M]``, ``voxel_free [M]`` float32 and ``voxel_active [M]``
+    bool (inactive voxels read as empty, see :mod:`.evidence`) and, with a decoder, one ``decoder/<name>``
+    array per parameter."""
     arrays: dict[str, np.ndarray] = {
         "morton_codes": voxel_map.voxel_codes.cpu().numpy(),
         "voxel_coords": voxel_map.voxel_coords.cpu().numpy(),
@@ -29,6 +31,9 @@ def voxels_npz_bytes(voxel_map: VoxelMap, decoder: torch.nn.Module | None = None
         "vertex_codes": voxel_map.vertex_codes.cpu().numpy(),
         "voxel_vertex_ids": voxel_map.voxel_vertex_ids.cpu().numpy(),
         "embeddings": voxel_map.embeddings.detach().cpu().numpy(),
+        "voxel_hits": voxel_map.voxel_hits.cpu().numpy(),
+        "voxel_free": voxel_map.voxel_free.cpu().numpy(),
+        "voxel_active": voxel_map.voxel_active.cpu().numpy(),
     }
     if decoder is not None:
         for k, v in decoder.state_dict().items():

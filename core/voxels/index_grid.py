@@ -68,11 +68,14 @@ class VoxelIndexGrid:
         """
         if cells.shape[-1:] != (3,):
             raise ShapeError("cells", tuple(cells.shape), "[..., 3]")
-        rel = cells - self.origin
-        inside = ((rel >= 0) & (rel < self.size)).all(-1)
+        # per axis with Python-int bounds: about twice as fast as broadcasting over the last dimension
+        x, y, z = cells.unbind(-1)
+        (ox, oy, oz), (nx, ny, nz) = self.origin_xyz, self.shape
+        x, y, z = x - ox, y - oy, z - oz
+        inside = (x >= 0) & (x < nx) & (y >= 0) & (y < ny) & (z >= 0) & (z < nz)
         sx, sy, _ = self.strides
-        flat = rel[..., 0] * sx + rel[..., 1] * sy + rel[..., 2]
-        return torch.where(inside, flat, torch.zeros_like(flat)), inside
+        flat = (x * sx + y * sy + z) * inside
+        return flat, inside
 
     def lookup(self, cells: torch.Tensor) -> torch.Tensor:
         """Value of each cell ``[..., 3]`` (int64) -> ``[...]`` int64, -1 outside the grid or where empty."""
@@ -87,7 +90,7 @@ def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: in
 
     Args:
         voxel_coords: ``[M, 3]`` int64 voxel coordinates (M >= 1).
-        values: ``[M]`` integer value per voxel (cells holding several voxels keep one of them).
+        values: ``[M]`` integer value per voxel, -1 = empty (cells holding several voxels keep the largest).
         level: octree level of the grid's cells (0 = voxels).
         border: empty cells added on every side of the occupied box.
         max_cells: memory budget; None is returned when the grid would have more cells.
@@ -108,6 +111,8 @@ def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: in
     table = torch.full((shape[0] * shape[1] * shape[2],), -1, dtype=torch.int32, device=voxel_coords.device)
     sx, sy = shape[1] * shape[2], shape[2]
     rel = cells - lo
-    table[rel[:, 0] * sx + rel[:, 1] * sy + rel[:, 2]] = values.to(torch.int32)
+    # a cell holding several voxels keeps the largest value (deterministic on every device), so a coarse
+    # block is occupied (0) when any of its voxels is, whatever the order of the inactive (-1) ones
+    table.scatter_reduce_(0, rel[:, 0] * sx + rel[:, 1] * sy + rel[:, 2], values.to(torch.int32), "amax")
     return VoxelIndexGrid(origin=lo, origin_xyz=tuple(int(c) for c in lo.tolist()), size=size, shape=shape,
                           level=level, table=table, n_occupied=int((table >= 0).sum()))

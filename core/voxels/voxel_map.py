@@ -15,6 +15,16 @@ Point lookups and ray marching use a dense index grid over the bounding box inst
 (:meth:`VoxelMap.index_grid`, built lazily after each allocation) while it fits in
 :attr:`VoxelMap.dense_grid_max_cells`; beyond that they fall back to the sorted codes.
 
+Observation evidence and the active mask: each voxel carries two counters filled by mapping
+(:func:`~..evidence.observe_frame`), ``voxel_hits`` (depth points that fell in it) and ``voxel_free``
+(camera rays that crossed it as free space, well in front of their observed surface), and an ``active``
+flag derived from them. An **inactive** voxel stays allocated (its code, vertices, embeddings and
+evidence are kept, so allocation never re-creates it and later hits can re-activate it) but every *read*
+path treats it as empty: :meth:`~VoxelMap.lookup_voxels`, :meth:`~VoxelMap.lookup_codes` and the
+:meth:`~VoxelMap.index_grid` tables return -1 for it, so ray-voxel intersection, rendering, training, field
+queries and mesh extraction skip it. Allocation and the keyframe test (:meth:`~VoxelMap.allocate`,
+:meth:`~VoxelMap.count_new_voxels`, :meth:`~VoxelMap.lookup_allocated`) see every allocated voxel.
+
 Example:
     >>> vmap = VoxelMap(voxel_size_m=0.2, embed_dim=16, seed=0)
     >>> vmap.allocate(torch.tensor([[0.05, 0.1, 1.0], [0.3, 0.1, 1.0]]))
@@ -47,7 +57,12 @@ from .morton import (
 
 __all__ = ["MemoryReport", "VoxelMap"]
 
+_ALLOCATED_GRID = -1
+"""Key of the dense grid of every allocated voxel, active or not, in ``VoxelMap._grids``."""
+
 _STATE_VERSION = 1
+"""Version of :meth:`VoxelMap.state_dict`. The evidence keys (``voxel_hits``, ``voxel_free``,
+``voxel_active``) are optional: a state without them loads with zero evidence and every voxel active."""
 
 
 @dataclass(frozen=True)
@@ -59,7 +74,8 @@ class MemoryReport:
     embedding_bytes: int
     """Vertex embeddings (``n_vertices * embed_dim * 4`` for float32)."""
     index_bytes: int
-    """Codes, coordinates, vertex ids, the sorted lookup copies and the dense lookup grids built so far."""
+    """Codes, coordinates, vertex ids, the sorted lookup copies, the evidence counters and active mask, and
+    the dense lookup grids built so far."""
     decoder_bytes: int
     """Parameters and buffers of the decoder passed to :meth:`VoxelMap.memory_report` (0 if none)."""
 
@@ -87,6 +103,10 @@ class VoxelMap:
         voxel_coords: ``[M, 3]`` int64 integer voxel coordinates.
         voxel_vertex_ids: ``[M, 8]`` int64 rows of ``embeddings`` at each corner (order: CORNER_OFFSETS).
         vertex_codes: ``[V]`` int64 Morton codes of vertex lattice coordinates (vertex index = row).
+        voxel_hits: ``[M]`` float32 observation evidence: depth pixels that fell in the voxel.
+        voxel_free: ``[M]`` float32 free-space evidence: pixel rays that crossed the voxel well in front of
+            their observed surface.
+        voxel_active: ``[M]`` bool; inactive voxels read as empty (module docstring, :meth:`set_active`).
     """
 
     _dense_grid_max_cells: int = 1 << 26
@@ -117,6 +137,10 @@ class VoxelMap:
         self._voxel_perm = torch.empty(0, **i64)
         self._sorted_vertex_codes = torch.empty(0, **i64)
         self._vertex_perm = torch.empty(0, **i64)
+        self._voxel_hits = torch.empty(0, dtype=torch.float32, device=device)
+        self._voxel_free = torch.empty(0, dtype=torch.float32, device=device)
+        self._voxel_active = torch.empty(0, dtype=torch.bool, device=device)
+        self._n_inactive = 0
         self._bounds: tuple[torch.Tensor, torch.Tensor] | None = None
         self._grids: dict[int, VoxelIndexGrid | None] = {}
         self.embeddings = torch.nn.Parameter(torch.empty(0, self.embed_dim, device=device))
@@ -148,6 +172,30 @@ class VoxelMap:
     @property
     def vertex_codes(self) -> torch.Tensor:
         return self._vertex_codes
+
+    @property
+    def voxel_hits(self) -> torch.Tensor:
+        return self._voxel_hits
+
+    @property
+    def voxel_free(self) -> torch.Tensor:
+        return self._voxel_free
+
+    @property
+    def voxel_active(self) -> torch.Tensor:
+        return self._voxel_active
+
+    @property
+    def n_active(self) -> int:
+        """Voxels that read as allocated (``n_voxels`` minus the inactive ones)."""
+        return self.n_voxels - self._n_inactive
+
+    @property
+    def active_voxel_coords(self) -> torch.Tensor:
+        """``[A, 3]`` int64 coordinates of the active voxels (what mesh extraction should cover)."""
+        if self._n_inactive == 0:
+            return self._voxel_coords
+        return self._voxel_coords[self._voxel_active]
 
     @property
     def vertex_coords(self) -> torch.Tensor:
@@ -189,9 +237,10 @@ class VoxelMap:
     def index_grid(self, level: int = 0) -> VoxelIndexGrid | None:
         """Dense index grid over the allocated voxels' bounding box (plus a one-cell border), or None.
 
-        ``level`` 0: each cell is a voxel and holds its index (-1 where unallocated). ``level`` k > 0:
-        each cell is a block of ``2**k`` voxels per axis (the octree level ``code >> 3k``) and holds 0
-        where any voxel of the block is allocated, -1 elsewhere (used to skip empty space).
+        ``level`` 0: each cell is a voxel and holds its index (-1 where unallocated or inactive). ``level``
+        k > 0: each cell is a block of ``2**k`` voxels per axis (the octree level ``code >> 3k``) and holds
+        0 where any voxel of the block is allocated and active, -1 elsewhere (used to skip empty space).
+        The box always covers every allocated voxel (:attr:`voxel_bounds`), active or not.
 
         Built on first use after each allocation and cached; a grid is never modified in place (growth
         builds a new one), so snapshots can share it. None when the map is empty or the grid would
@@ -207,6 +256,8 @@ class VoxelMap:
                 coords = self._voxel_coords
                 values = (torch.arange(coords.shape[0], device=coords.device) if level == 0
                           else torch.zeros(coords.shape[0], dtype=torch.int64, device=coords.device))
+                if self._n_inactive:
+                    values = torch.where(self._voxel_active, values, torch.full_like(values, -1))
                 grid = build_index_grid(coords, values, level, border=1,
                                         max_cells=self._dense_grid_max_cells)
             grids[level] = grid
@@ -271,12 +322,52 @@ class VoxelMap:
             return grid.lookup(ijk)
         inside = ((ijk >= MORTON_MIN_COORD) & (ijk <= MORTON_MAX_COORD)).all(-1)
         codes = morton_encode(torch.where(inside[:, None], ijk, torch.zeros_like(ijk)))
-        idx = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes)
+        idx = self._drop_inactive(find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes))
         return torch.where(inside, idx, torch.full_like(idx, -1))
 
     def lookup_codes(self, codes: torch.Tensor) -> torch.Tensor:
-        """Voxel index of each Morton code (any shape, int64), -1 where no voxel is allocated."""
+        """Voxel index of each Morton code (any shape, int64), -1 where no voxel is allocated or the voxel
+        is inactive."""
+        return self._drop_inactive(self.lookup_allocated(codes))
+
+    def lookup_allocated(self, codes: torch.Tensor) -> torch.Tensor:
+        """Voxel index of each Morton code (any shape, int64), -1 where no voxel is allocated; unlike
+        :meth:`lookup_codes`, inactive voxels are found too (evidence accumulation, allocation)."""
         return find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes.to(self.device, torch.int64))
+
+    def lookup_allocated_cells(self, ijk: torch.Tensor) -> torch.Tensor:
+        """Voxel index of each integer voxel coordinate ``[..., 3]`` int64 -> ``[...]`` int64, -1 where no
+        voxel is allocated (any coordinate, in range or not); inactive voxels are found too.
+
+        Uses a dense grid of every allocated voxel while it fits in :attr:`dense_grid_max_cells` (the
+        level-0 :meth:`index_grid` itself when no voxel is inactive), else the sorted Morton codes.
+        """
+        if ijk.shape[-1:] != (3,):
+            raise ShapeError("ijk", tuple(ijk.shape), "[..., 3]")
+        ijk = ijk.to(self.device, torch.int64)
+        if self.n_voxels == 0:
+            return torch.full(ijk.shape[:-1], -1, dtype=torch.int64, device=self.device)
+        if self._n_inactive == 0:
+            grid = self.index_grid()
+        else:
+            if _ALLOCATED_GRID not in self._grids:
+                coords = self._voxel_coords
+                self._grids[_ALLOCATED_GRID] = build_index_grid(
+                    coords, torch.arange(coords.shape[0], device=coords.device), 0, border=1,
+                    max_cells=self._dense_grid_max_cells)
+            grid = self._grids[_ALLOCATED_GRID]
+        if grid is not None:
+            return grid.lookup(ijk)
+        inside = ((ijk >= MORTON_MIN_COORD) & (ijk <= MORTON_MAX_COORD)).all(-1)
+        codes = morton_encode(torch.where(inside[..., None], ijk, torch.zeros_like(ijk)))
+        idx = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes)
+        return torch.where(inside, idx, torch.full_like(idx, -1))
+
+    def _drop_inactive(self, idx: torch.Tensor) -> torch.Tensor:
+        if self._n_inactive == 0:
+            return idx
+        active = self._voxel_active[idx.clamp(min=0)]
+        return torch.where(active, idx, torch.full_like(idx, -1))
 
     def count_new_voxels(self, points_world: torch.Tensor) -> tuple[int, int]:
         """Keyframe test without allocating: ``(n_new, n_observed)`` distinct voxels the points fall in.
@@ -294,7 +385,8 @@ class VoxelMap:
         """Allocate a voxel for every point that lies in no allocated voxel; returns how many were new.
 
         Duplicates are merged and the call is idempotent. New voxels are appended in ascending Morton
-        order; their missing corner vertices get fresh ``N(0, init_std**2)`` embeddings.
+        order, active and with zero evidence; their missing corner vertices get fresh
+        ``N(0, init_std**2)`` embeddings. A point in an inactive voxel allocates nothing (the voxel exists).
 
         Args:
             points_world: ``[N, 3]`` float world points in metres (e.g. back-projected, posed depth).
@@ -335,6 +427,9 @@ class VoxelMap:
         self._voxel_codes = torch.cat([self._voxel_codes, new_codes])
         self._voxel_coords = torch.cat([self._voxel_coords, new_coords])
         self._voxel_vertex_ids = torch.cat([self._voxel_vertex_ids, vertex_ids])
+        self._voxel_hits = torch.cat([self._voxel_hits, self._voxel_hits.new_zeros(k)])
+        self._voxel_free = torch.cat([self._voxel_free, self._voxel_free.new_zeros(k)])
+        self._voxel_active = torch.cat([self._voxel_active, self._voxel_active.new_ones(k)])
         self._update_bounds(new_coords)
         self._invalidate_grids()
         if optimizer is not None:
@@ -369,12 +464,62 @@ class VoxelMap:
                 replaced += 1
         return replaced
 
+    # ------------------------------------------------------------------ evidence
+    def add_evidence(self, hit_idx: torch.Tensor, free_idx: torch.Tensor, hit_weight: float = 1.0,
+                     free_weight: float = 1.0) -> None:
+        """Add observations to the per-voxel evidence counters (see :mod:`..evidence` for what they mean).
+
+        Args:
+            hit_idx: ``[K]`` int64 voxel indices, one per depth point that fell in the voxel (repeats add
+                up); each adds ``hit_weight`` to ``voxel_hits``.
+            free_idx: ``[F]`` int64 voxel indices, one per ray that crossed the voxel as free space; each
+                adds ``free_weight`` to ``voxel_free``.
+
+        The counters are replaced, never updated in place, so snapshots keep their own.
+
+        Raises:
+            ValidationError naming ``hit_idx`` / ``free_idx`` (not an index of an allocated voxel) or the
+            weights (negative or non-finite).
+        """
+        for name, w in (("hit_weight", hit_weight), ("free_weight", free_weight)):
+            if not (math.isfinite(w) and w >= 0):
+                raise ValidationError(name, f"must be a finite number >= 0, got {w!r}")
+        tables = []
+        for name, idx, table, w in (("hit_idx", hit_idx, self._voxel_hits, hit_weight),
+                                    ("free_idx", free_idx, self._voxel_free, free_weight)):
+            if not isinstance(idx, torch.Tensor) or idx.dim() != 1:
+                raise ShapeError(name, tuple(getattr(idx, "shape", ())), "[K]")
+            idx = idx.to(self.device, torch.int64)
+            if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= self.n_voxels):
+                raise ValidationError(name, f"voxel indices must be in [0, {self.n_voxels})")
+            if idx.numel():
+                table = table.index_add(0, idx, table.new_full((idx.numel(),), float(w)))
+            tables.append(table)
+        self._voxel_hits, self._voxel_free = tables
+
+    def set_active(self, active: torch.Tensor) -> int:
+        """Replace the active mask (``[M]`` bool); returns how many voxels changed state.
+
+        Inactive voxels read as empty (module docstring); the dense grids are rebuilt only when the mask
+        changed. Nothing is freed: embeddings, vertices and optimiser state stay as they are, so the
+        mask can be lifted again at any time.
+        """
+        if not isinstance(active, torch.Tensor) or active.shape != (self.n_voxels,):
+            raise ShapeError("active", tuple(getattr(active, "shape", ())), f"({self.n_voxels},)")
+        active = active.to(self.device, torch.bool)
+        changed = int((active != self._voxel_active).sum())
+        if changed:
+            self._voxel_active = active.clone()
+            self._n_inactive = int((~active).sum())
+            self._invalidate_grids()
+        return changed
+
     # ------------------------------------------------------------------ misc
     def memory_report(self, decoder: torch.nn.Module | None = None) -> MemoryReport:
         """Counts and byte sizes of the map (and of ``decoder``'s parameters and buffers, if given)."""
         idx_tensors = [self._voxel_codes, self._voxel_coords, self._voxel_vertex_ids, self._vertex_codes,
                        self._sorted_voxel_codes, self._voxel_perm, self._sorted_vertex_codes,
-                       self._vertex_perm]
+                       self._vertex_perm, self._voxel_hits, self._voxel_free, self._voxel_active]
         idx_tensors += [g.table for g in self._grids.values() if g is not None]
         dec = 0
         if decoder is not None:
@@ -392,8 +537,10 @@ class VoxelMap:
         """Checkpoint contents (CPU tensors): all :meth:`load_state_dict` needs to reproduce the map.
 
         Keys: ``version``, ``voxel_size_m``, ``embed_dim``, ``init_std``, ``voxel_codes [M]``,
-        ``vertex_codes [V]``, ``voxel_vertex_ids [M, 8]``, ``embeddings [V, D]`` and ``rng_state`` (the
-        embedding generator's state, None when unseeded), so later allocations also continue identically.
+        ``vertex_codes [V]``, ``voxel_vertex_ids [M, 8]``, ``embeddings [V, D]``, the evidence
+        ``voxel_hits [M]``, ``voxel_free [M]`` (float32) and ``voxel_active [M]`` (bool), and ``rng_state``
+        (the embedding generator's state, None when unseeded), so later allocations also continue
+        identically.
         """
         return {
             "version": _STATE_VERSION,
@@ -404,6 +551,9 @@ class VoxelMap:
             "vertex_codes": self._vertex_codes.cpu().clone(),
             "voxel_vertex_ids": self._voxel_vertex_ids.cpu().clone(),
             "embeddings": self.embeddings.detach().cpu().clone(),
+            "voxel_hits": self._voxel_hits.cpu().clone(),
+            "voxel_free": self._voxel_free.cpu().clone(),
+            "voxel_active": self._voxel_active.cpu().clone(),
             "rng_state": self._generator.get_state() if self._generator is not None else None,
         }
 
@@ -432,6 +582,14 @@ class VoxelMap:
             raise ValidationError("state_dict.voxel_vertex_ids", "vertex index out of range")
         if torch.unique(vc).numel() != vc.numel() or torch.unique(tc).numel() != tc.numel():
             raise ValidationError("state_dict", "duplicate voxel or vertex codes")
+        m = vc.numel()
+        hits = torch.as_tensor(state.get("voxel_hits", torch.zeros(m)), device=dev).to(torch.float32).reshape(-1)
+        free = torch.as_tensor(state.get("voxel_free", torch.zeros(m)), device=dev).to(torch.float32).reshape(-1)
+        active = torch.as_tensor(state.get("voxel_active", torch.ones(m, dtype=torch.bool)),
+                                 device=dev).to(torch.bool).reshape(-1)
+        for name, t in (("voxel_hits", hits), ("voxel_free", free), ("voxel_active", active)):
+            if t.shape != (m,):
+                raise ShapeError(f"state_dict.{name}", tuple(t.shape), f"({m},)")
         self.voxel_size_m = float(state["voxel_size_m"])
         self.embed_dim = int(state["embed_dim"])
         self.init_std = float(state.get("init_std", self.init_std))
@@ -441,6 +599,8 @@ class VoxelMap:
         self._former_embeddings = []
         self._voxel_codes, self._vertex_codes, self._voxel_vertex_ids = vc, tc, vid
         self._voxel_coords = morton_decode(vc)
+        self._voxel_hits, self._voxel_free, self._voxel_active = hits.clone(), free.clone(), active.clone()
+        self._n_inactive = int((~active).sum())
         self._bounds = None
         self._update_bounds(self._voxel_coords)
         self._invalidate_grids()
@@ -484,7 +644,8 @@ class VoxelMap:
         if device == self.device:
             return self
         for name in ("_voxel_codes", "_voxel_coords", "_voxel_vertex_ids", "_vertex_codes",
-                     "_sorted_voxel_codes", "_voxel_perm", "_sorted_vertex_codes", "_vertex_perm"):
+                     "_sorted_voxel_codes", "_voxel_perm", "_sorted_vertex_codes", "_vertex_perm",
+                     "_voxel_hits", "_voxel_free", "_voxel_active"):
             setattr(self, name, getattr(self, name).to(device))
         if self._bounds is not None:
             self._bounds = (self._bounds[0].to(device), self._bounds[1].to(device))

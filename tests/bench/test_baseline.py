@@ -21,6 +21,7 @@ from bench.baseline_tsdf import (  # noqa: E402
     TSDFBaselineConfig,
     run_tsdf_baseline,
     save_result,
+    tsdf_render_back,
 )
 from bench.machine import PeakMemory, machine_info  # noqa: E402
 from voxfusion.core.datasets.frame import BaseCapture, RGBDFrame  # noqa: E402
@@ -155,6 +156,16 @@ def test_missing_open3d_raises_install_hint(synthetic, monkeypatch):
     with pytest.raises(MissingDependencyError, match=r"pip install 'voxfusion\[baseline\]'") as info:
         run_tsdf_baseline(synthetic, FAST, progress=False)
     assert isinstance(info.value, ImportError)
+
+
+def test_tsdf_render_back_reproduces_the_frame(synthetic):
+    """The baseline's side of bench/bench_outliers.py: one integration, ray cast at the same pose."""
+    frame = synthetic[0]
+    depth = tsdf_render_back(frame, frame.T_world_cam, TSDFBaselineConfig(voxel_size_m=0.02, depth_max_m=5.0))
+    assert depth.shape == frame.depth_m.shape and depth.dtype == np.float32
+    both = (depth > 0) & (frame.depth_m > 0)
+    assert both.mean() > 0.9
+    assert np.median(np.abs(depth[both] - frame.depth_m[both])) < 0.01
 
 
 def test_peak_memory_sees_an_allocation():
