@@ -154,11 +154,16 @@ def run_baseline(capture: Capture, args: argparse.Namespace) -> MethodResult:
     )
 
 
-def _voxfusion_config(args: argparse.Namespace):  # noqa: ANN202
-    from voxfusion.core.slam_config import load_preset
+def _voxfusion_config(args: argparse.Namespace, capture: Capture):  # noqa: ANN202
+    """The preset ``voxfusion run`` would pick for ``capture`` on this machine (``--vf-config`` overrides the
+    name), with the capture's facts (depth range, confidence, colour registration) under it."""
+    from voxfusion.core.slam_config import load_preset, preset_for
 
-    preset = args.vf_config or ("synthetic" if args.synthetic else "default")
-    return preset, load_preset(preset, list(args.vf_set or []))
+    overrides = list(args.vf_set or [])
+    if args.vf_config:
+        return args.vf_config, load_preset(args.vf_config, overrides, profile=getattr(capture, "profile", None))
+    choice = preset_for(capture, overrides=overrides)
+    return choice.preset, choice.config
 
 
 def _voxfusion_result(capture: Capture, args: argparse.Namespace, known_poses: bool) -> MethodResult:
@@ -167,7 +172,7 @@ def _voxfusion_result(capture: Capture, args: argparse.Namespace, known_poses: b
     from voxfusion.core.reconstruct import map_capture
     from voxfusion.core.run import run_capture, timing_summary
 
-    preset, config = _voxfusion_config(args)
+    preset, config = _voxfusion_config(args, capture)
     with PeakMemory() as mem:
         if known_poses:
             r = map_capture(capture, config, progress=args.progress)
@@ -254,10 +259,11 @@ def _open(args: argparse.Namespace) -> tuple[Capture, trimesh.Trimesh | None, st
 
         n = args.frames if args.max_frames is None else min(args.frames, args.max_frames)
         config = SyntheticConfig(n_frames=n, width=args.width, height=args.height, seed=args.seed,
-                                 lidar=args.lidar)
+                                 lidar=args.lidar, yaw_rate_deg_s=args.yaw_rate_deg_s)
         capture = SyntheticCapture(config)
         w, h = config.image_size
-        name = f"synthetic_{w}x{h}_{n}f_seed{args.seed}" + ("_lidar" if args.lidar else "")
+        name = (f"synthetic_{w}x{h}_{n}f_seed{args.seed}" + ("_lidar" if args.lidar else "")
+                + (f"_yaw{args.yaw_rate_deg_s:g}" if args.yaw_rate_deg_s else ""))
         desc = {"kind": "synthetic", "config": asdict(config)}
         return capture, capture.gt_mesh, name, desc
     from voxfusion.core.datasets import detect_format, open_capture
@@ -338,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--height", type=int, default=None, help="synthetic: image height (default 240, LiDAR 192)")
     p.add_argument("--seed", type=int, default=0, help="synthetic: scene and trajectory seed")
     p.add_argument("--lidar", action="store_true", help="synthetic: iPhone-LiDAR-like noisy 256x192 depth")
+    p.add_argument("--yaw-rate-deg-s", type=float, default=0.0,
+                   help="synthetic: fast rotation, an extra yaw swing peaking at this rate (deg/s; 0 = off)")
     p.add_argument("--method", nargs="+", default=["baseline"], choices=[*METHODS, *PLANNED_METHODS],
                    help="methods to run, in order (default: baseline)")
     p.add_argument("--max-frames", type=int, default=None, help="use at most this many frames")
@@ -348,7 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
                    + " (auto: from the capture)")
     p.add_argument("--voxel-size-m", type=float, default=None, help="override the baseline's voxel size")
     p.add_argument("--vf-config", default=None,
-                   help="voxfusion preset name or YAML (default: synthetic for --synthetic, else default)")
+                   help="voxfusion preset name or YAML (default: what voxfusion run picks for the capture and device)")
     p.add_argument("--vf-set", nargs="*", default=None, help="voxfusion overrides, e.g. mapping.iters=20")
     p.add_argument("--mesh-samples", type=int, default=200_000, help="surface samples per mesh for metrics")
     p.add_argument("--cull-stride", type=int, default=5,

@@ -33,6 +33,9 @@ __all__ = [
     "NeuralField",
     "local_coords",
     "interpolate",
+    "interpolate_unchecked",
+    "interpolate_reference",
+    "trilinear_weights",
     "query",
 ]
 
@@ -167,12 +170,41 @@ def interpolate(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torc
         raise ShapeError("voxel_idx", tuple(voxel_idx.shape), f"[{points_world.shape[0]}]")
     if voxel_idx.numel() and int(voxel_idx.min()) < 0:
         raise ValidationError("voxel_idx", "contains -1 (points outside allocated voxels); mask them first")
+    return interpolate_unchecked(voxel_map, points_world, voxel_idx, local_xyz)
+
+
+def interpolate_unchecked(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor,
+                          local_xyz: torch.Tensor | None = None) -> torch.Tensor:
+    """:func:`interpolate` without its argument checks, so it never waits for the device (no host sync).
+
+    For fixed-shape loops that pass ``voxel_idx.clamp(min=0)`` and mask the points outside the map
+    themselves; arguments as for :func:`interpolate`.
+    """
     if local_xyz is None:
         local_xyz = local_coords(voxel_map, points_world, voxel_idx)
     emb = voxel_map.embeddings
     corner_ids = voxel_map.voxel_vertex_ids[voxel_idx]  # [K, 8]
-    # embedding() rather than emb[ids]: its CPU backward accumulates in a fixed order (reproducible runs)
-    corners = torch.nn.functional.embedding(corner_ids, emb)  # [K, 8, D]
+    # one fused gather-and-weighted-sum (its backward scatters into the table in a fixed order on CPU)
+    w = trilinear_weights(local_xyz).to(emb.dtype)
+    return torch.nn.functional.embedding_bag(corner_ids, emb, per_sample_weights=w, mode="sum")
+
+
+def trilinear_weights(local_xyz: torch.Tensor) -> torch.Tensor:
+    """``[K, 3]`` in-voxel coordinates in [0, 1] -> ``[K, 8]`` trilinear weights in corner order
+    ``c = 4 dx + 2 dy + dz`` (:data:`~.voxels.CORNER_OFFSETS`), as an outer product of the per-axis weights."""
+    one = torch.stack([1.0 - local_xyz, local_xyz], -1)  # [K, 3, 2]: weight of corner d in {0, 1} per axis
+    wx, wy, wz = one[:, 0], one[:, 1], one[:, 2]
+    return (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
+
+
+def interpolate_reference(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor,
+                          local_xyz: torch.Tensor | None = None) -> torch.Tensor:
+    """The plain version of :func:`interpolate` (gather ``[K, 8, D]``, weights from the corner table, sum);
+    the fast path is tested against it."""
+    if local_xyz is None:
+        local_xyz = local_coords(voxel_map, points_world, voxel_idx)
+    emb = voxel_map.embeddings
+    corners = torch.nn.functional.embedding(voxel_map.voxel_vertex_ids[voxel_idx], emb)  # [K, 8, D]
     off = CORNER_OFFSETS.to(local_xyz.device, local_xyz.dtype)  # [8, 3]
     x = local_xyz[:, None, :]
     w = (off * x + (1.0 - off) * (1.0 - x)).prod(-1)  # [K, 8]

@@ -13,11 +13,13 @@ Conventions (see ../shared/GUIDE.md):
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg
 from scipy.spatial.transform import Rotation
 
 from .errors import ShapeError, ValidationError
 
 __all__ = [
+    "scale_motion",
     "GL_TO_CV",
     "opengl_to_opencv",
     "opencv_to_opengl",
@@ -154,6 +156,17 @@ def backproject_depth(depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarra
     if T_world_cam is not None:
         pts = pts @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
     return pts
+
+
+def scale_motion(T_rel: np.ndarray, ratio: float) -> np.ndarray:
+    """A relative motion ``[4, 4]`` stretched to ``ratio`` times its duration at constant velocity:
+    ``exp(ratio * log(T_rel))`` on SE(3) (constant angular and linear velocity in the moving frame, a screw
+    motion). ``ratio`` 1 returns ``T_rel``; rotations must be below 180 degrees.
+    """
+    T_rel = np.asarray(T_rel, dtype=np.float64)
+    if ratio == 1.0:
+        return T_rel
+    return nearest_rigid(np.real(scipy.linalg.expm(ratio * scipy.linalg.logm(T_rel))))
 
 
 def nearest_rigid(T: np.ndarray) -> np.ndarray:

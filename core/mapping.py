@@ -3,7 +3,10 @@
 The :class:`Mapper` owns the sparse voxel map, the decoder and their optimiser. Each frame handed to
 :meth:`Mapper.integrate` (with its camera pose) is fused in three steps:
 
-1. **Allocate** a voxel for every back-projected depth point that falls in no voxel yet.
+1. **Allocate** a voxel for every back-projected depth point that falls in no voxel yet (the frame's depth
+   was already cleaned of unsupported outliers by :func:`~.framedata.frame_to_device`), then add the
+   frame's **observation evidence** (depth points per voxel, free-space rays per voxel) and deactivate
+   voxels that rays have mostly seen as empty (:mod:`.evidence`), so they never render a surface.
 2. **Keyframe test**: the frame becomes a keyframe when ``N_c / N_o`` (voxels it would newly allocate /
    voxels it observes that exist already, counted before step 1) exceeds ``keyframe_ratio``, or when no
    keyframe was taken for ``keyframe_max_interval`` frames. The first frame is always a keyframe.
@@ -16,6 +19,7 @@ and hands refined poses in the same way.
 
 from __future__ import annotations
 
+import dataclasses
 import random
 import time
 from dataclasses import dataclass
@@ -23,12 +27,15 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .depth_filter import DepthFilterConfig
 from .errors import ConfigError, ValidationError
+from .evidence import EvidenceConfig, observe_frame
 from .field import FieldConfig, SDFDecoder, query
 from .framedata import FrameData, sample_pixels
 from .lie import perturb_right
 from .losses import LossConfig, LossTerms, compute_losses
 from .mesh import extract_mesh
+from .optim import adam
 from .render import RenderConfig, camera_rays, render_rays
 from .voxels import VoxelMap
 
@@ -62,6 +69,12 @@ class MappingConfig:
     """Depth outside this range is ignored (neither allocated nor supervised)."""
     min_confidence: int | None = None
     """Drop pixels whose confidence (0/1/2) is below this, when the frame has a confidence map."""
+    depth_filter: DepthFilterConfig = dataclasses.field(default_factory=DepthFilterConfig)
+    """Neighbourhood-support outlier filter applied to every frame's depth where it enters the engine
+    (:func:`~.framedata.frame_to_device`), for tracking and mapping alike; ``enabled=false`` turns it off."""
+    evidence: EvidenceConfig = dataclasses.field(default_factory=EvidenceConfig)
+    """Per-voxel observation evidence and the active mask (:mod:`.evidence`); ``enabled=false`` turns it
+    off (every allocated voxel stays active)."""
     alloc_stride: int = 1
     """Back-project every ``alloc_stride``-th pixel (per axis) for allocation."""
     optimize_poses: bool = True
@@ -119,6 +132,8 @@ class MappingStep:
     iterations: int
     loss: float
     time_ms: float
+    inactive_voxels: int = 0
+    """Voxels the evidence marks empty after this frame (kept allocated, read as empty)."""
 
 
 def _backproject(frame: FrameData, T_world_cam: torch.Tensor, stride: int) -> torch.Tensor:
@@ -167,10 +182,10 @@ class Mapper:
 
     def rebuild_optimizer(self) -> None:
         """A fresh Adam over the current embeddings and decoder (after loading or moving the map)."""
-        self.optimizer = torch.optim.Adam([
+        self.optimizer = adam([
             {"params": [self.voxels.embeddings], "lr": self.config.lr_embeddings},
             {"params": list(self.decoder.parameters()), "lr": self.config.lr_decoder},
-        ])
+        ], lr=self.config.lr_embeddings)
         self.pose_optimizer: torch.optim.Adam | None = None
 
     def _pose_optimizer(self, window: list[Keyframe]) -> torch.optim.Adam | None:
@@ -181,7 +196,7 @@ class Mapper:
         if not params:
             return None
         if self.pose_optimizer is None:
-            self.pose_optimizer = torch.optim.Adam(params, lr=self.config.lr_pose)
+            self.pose_optimizer = adam(params, lr=self.config.lr_pose)
         known = {id(p) for g in self.pose_optimizer.param_groups for p in g["params"]}
         for p in params:
             if id(p) not in known:
@@ -215,6 +230,9 @@ class Mapper:
         is_kf = (first or self._frames_since_keyframe + 1 >= self.config.keyframe_max_interval
                  or n_new > self.config.keyframe_ratio * max(n_obs, 1))
         self.voxels.allocate(points, self.optimizer)
+        if self.config.evidence.enabled:
+            observe_frame(self.voxels, frame, T, points, self.config.evidence,
+                          point_weight=float(self.config.alloc_stride ** 2))
         current = Keyframe.create(frame, T, fixed=first)
         if is_kf:
             self.keyframes.append(current)
@@ -233,17 +251,18 @@ class Mapper:
             self._forget_pose(current)
         self._n_integrated += 1
         self.last_frame_pose = current.T_world_cam
-        return MappingStep(frame.index, is_kf, n_new, n_obs, iters, loss, (time.perf_counter() - t0) * 1e3)
+        return MappingStep(frame.index, is_kf, n_new, n_obs, iters, loss, (time.perf_counter() - t0) * 1e3,
+                           inactive_voxels=self.voxels.n_voxels - self.voxels.n_active)
 
     def optimize(self, iters: int, newest: Keyframe | None = None) -> float:
         """Run ``iters`` joint iterations on windows of random keyframes (+ ``newest``); mean loss."""
-        total = 0.0
+        total = torch.zeros((), dtype=torch.float64, device=self.device)
         for _ in range(iters):
             window = self._window(newest)
             terms = self.step(window)
-            total += float(terms.total.detach())
+            total += terms.total.detach()  # stays on the device: one read-back per round, not per iteration
         self.version += 1
-        return total / max(iters, 1)
+        return float(total) / max(iters, 1)
 
     def _window(self, newest: Keyframe | None) -> list[Keyframe]:
         pool = [kf for kf in self.keyframes if kf is not newest]
@@ -298,6 +317,6 @@ class Mapper:
             return query(self.voxels, self.decoder, points_world.to(self.device))
 
     def extract_mesh(self, mesh_res: int = 8):  # noqa: ANN201 - trimesh.Trimesh
-        """Triangle mesh of the zero level set inside allocated voxels, with vertex colours."""
-        return extract_mesh(self.voxels.voxel_coords, self.voxels.voxel_size_m, self.query,
+        """Triangle mesh of the zero level set inside allocated, active voxels, with vertex colours."""
+        return extract_mesh(self.voxels.active_voxel_coords, self.voxels.voxel_size_m, self.query,
                             mesh_res=mesh_res, device=self.device)

@@ -158,7 +158,7 @@ class SlamSystem:
     def _to_device(self, frame: RGBDFrame) -> FrameData:
         m = self.config.mapping
         return frame_to_device(frame, self.device, m.min_depth_m, m.max_depth_m, m.min_confidence,
-                               use_color=bool(self._use_color))
+                               use_color=bool(self._use_color), depth_filter=m.depth_filter)
 
     def _first_pose(self, frame: RGBDFrame) -> np.ndarray:
         choice = self.config.first_pose
@@ -179,8 +179,11 @@ class SlamSystem:
         prev2 = good[-2] if len(good) > 1 else None
         dev_prev = self._device_pose_of(prev.index)
         dev_cur = frame.T_world_cam_device
+        ratio = 1.0
+        if prev2 is not None and prev.timestamp_s > prev2.timestamp_s:
+            ratio = (frame.timestamp_s - prev.timestamp_s) / (prev.timestamp_s - prev2.timestamp_s)
         T = predict_pose(prev.current_pose(), None if prev2 is None else prev2.current_pose(),
-                         self.config.tracking, dev_prev, dev_cur)
+                         self.config.tracking, dev_prev, dev_cur, dt_ratio=ratio)
         return T, device_prior_applies(self.config.tracking, dev_prev, dev_cur)
 
     def _device_pose_of(self, index: int) -> np.ndarray | None:
@@ -441,7 +444,7 @@ class SlamSystem:
             with torch.no_grad():
                 return field_query(snap.voxels, snap.decoder, points.to(snap.voxels.device))
 
-        mesh = extract_mesh(snap.voxels.voxel_coords, snap.voxels.voxel_size_m, query,
+        mesh = extract_mesh(snap.voxels.active_voxel_coords, snap.voxels.voxel_size_m, query,
                             mesh_res=self.config.mesh_res, device=snap.voxels.device)
         self._mesh_cache = (snap.version, mesh)
         return mesh

@@ -22,6 +22,7 @@ smaller steps (``lr_device_prior``) and may add a soft term holding the pose nea
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -33,19 +34,28 @@ import torch
 from .errors import ConfigError
 from .field import SDFDecoder
 from .framedata import FrameData, sample_pixels
-from .geometry import invert_pose, nearest_rigid
+from .geometry import invert_pose, nearest_rigid, scale_motion
 from .lie import perturb_right
 from .losses import LossConfig, compute_losses
+from .optim import adam
 from .render import RenderConfig, camera_rays, render_rays
+from .tracking_sdf import SdfPoints, SdfSolverConfig, sample_points, solve_pose
 from .voxels import VoxelMap
 
-__all__ = ["TrackingConfig", "TrackResult", "Tracker", "device_prior_applies", "predict_pose"]
+__all__ = ["TrackingConfig", "TrackResult", "Tracker", "device_prior_applies", "predict_pose", "masked_median"]
 
 
 @dataclass(frozen=True)
 class TrackingConfig:
     """Tracking options (paper symbols in brackets)."""
 
+    method: Literal["render", "sdf"] = "sdf"
+    """``sdf`` (default): Levenberg-Marquardt on point-to-SDF residuals (:mod:`.tracking_sdf`; one field query
+    per point per iteration, ``sdf_points`` points, ``sdf_iters`` iterations per level), optionally followed
+    by ``refine_iters`` iterations of the render tracker. ``render``: the paper's tracker (Adam through the
+    volume renderer, ``rays`` rays per iteration). Measured on the synthetic room (100 frames, CPU sizes):
+    ATE 0.26-0.28 cm with ``sdf`` against 0.38 cm with ``render``, and under fast rotation (180 deg/s) a
+    mean error of 1.3 against 2.6 cm, at ~50 ms against ~300 ms per frame."""
     rays: int = 1024
     """[N_t] pixels sampled per iteration."""
     iters: int = 30
@@ -65,6 +75,9 @@ class TrackingConfig:
     converge_tol: float = 2e-4
     """Stop when the pose moved less than this (m and rad) for ``patience`` consecutive iterations."""
     patience: int = 3
+    check_every: int = 1
+    """Render tracker: read the convergence test back from the device every this many iterations (each read
+    waits for the device; on a GPU, 4-5 keeps the loop from stalling, at most that many extra steps)."""
     motion_model: Literal["constant_velocity", "zero"] = "constant_velocity"
     """Prior without a device pose: constant velocity, or the paper's zero-motion model."""
     use_device_prior: bool = True
@@ -94,11 +107,31 @@ class TrackingConfig:
     map exceeds this (metres), i.e. the geometry really disagrees at the tracked pose."""
     t_far_margin_m: float = 0.3
     """Samples stop this far (camera z) behind the observed depth."""
+    sdf_points: int = 4096
+    """``sdf`` method: back-projected points at the finest level (each coarser level has 4x fewer)."""
+    sdf_levels: int = 2
+    """``sdf`` method: coarse-to-fine levels."""
+    sdf_iters: int = 6
+    """``sdf`` method: Levenberg-Marquardt iterations per level (fixed: the loop never waits for the host)."""
+    sdf_huber_m: float = 0.01
+    """``sdf`` method: Huber scale of the point-to-SDF residual (metres)."""
+    sdf_max_residual_m: float = 0.08
+    """``sdf`` method: points with |SDF| beyond this (metres) are outliers for that iteration. Keep it
+    below the truncation (0.1 m): the field saturates there and its gradient says nothing."""
+    sdf_inlier_m: float = 0.03
+    """``sdf`` method: |SDF| below this (metres) counts as an inlier for lost-frame detection."""
+    sdf_w_color: float = 0.0
+    """``sdf`` method: weight of the photometric residual (gray level from the colour head at the surface
+    point against the pixel, in [0, 1]) relative to the SDF residual in metres (0: geometry only)."""
+    sdf_lost_residual_m: float = 0.04
+    """``sdf`` method: a frame is lost when the median |SDF| of its points inside the map exceeds this."""
+    refine_iters: int = 0
+    """``sdf`` method: iterations of the render tracker run after it (0: none)."""
     loss: LossConfig = field(default_factory=LossConfig)
     """Loss weights used for tracking."""
 
     def __post_init__(self) -> None:
-        for name in ("rays", "iters", "patience"):
+        for name in ("rays", "iters", "patience", "check_every", "sdf_points", "sdf_levels", "sdf_iters"):
             if getattr(self, name) < 1:
                 raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
         if not (self.lr > 0 and self.lr_device_prior > 0 and self.lr_rot_ratio > 0):
@@ -109,6 +142,14 @@ class TrackingConfig:
             raise ConfigError("outlier_max_m", f"must be > 0, got {self.outlier_max_m}")
         if not 0 <= self.min_valid_fraction < 1:
             raise ConfigError("min_valid_fraction", "must be in [0, 1)")
+        for name in ("sdf_huber_m", "sdf_max_residual_m", "sdf_inlier_m", "sdf_lost_residual_m"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(name, f"must be > 0 metres, got {getattr(self, name)}")
+        if self.sdf_w_color < 0 or self.refine_iters < 0:
+            raise ConfigError("sdf_w_color", "sdf_w_color and refine_iters must be >= 0")
+        if self.sdf_points >> (2 * (self.sdf_levels - 1)) < 16:
+            raise ConfigError("sdf_points", f"the coarsest of {self.sdf_levels} levels would have fewer than 16 "
+                              f"points ({self.sdf_points} / 4^{self.sdf_levels - 1})")
 
 
 @dataclass(frozen=True)
@@ -135,18 +176,31 @@ def device_prior_applies(config: TrackingConfig, device_prev: np.ndarray | None,
     return config.use_device_prior and device_prev is not None and device_cur is not None
 
 
+MAX_DT_RATIO = 4.0
+"""Constant velocity is extrapolated over at most this many inter-frame intervals (a few dropped frames);
+beyond that (e.g. after a run of lost frames) the last velocity says little."""
+
+
 def predict_pose(T_prev: np.ndarray, T_prev2: np.ndarray | None, config: TrackingConfig,
-                 device_prev: np.ndarray | None = None, device_cur: np.ndarray | None = None) -> np.ndarray:
-    """Prior pose of the next frame from the last tracked poses (and device poses, if any)."""
+                 device_prev: np.ndarray | None = None, device_cur: np.ndarray | None = None,
+                 dt_ratio: float = 1.0) -> np.ndarray:
+    """Prior pose of the next frame from the last tracked poses (and device poses, if any).
+
+    Constant velocity is in the camera's own frame (``T_prev @ T_rel``, ``T_rel = T_prev2^-1 @ T_prev``), so a
+    turning camera keeps turning: a constant angular velocity. ``dt_ratio`` = (time from the previous frame
+    to this one) / (time between the two previous frames) stretches ``T_rel`` when frames were skipped
+    (realtime tracking drops frames it cannot keep up with) or arrive unevenly.
+    """
     if device_prior_applies(config, device_prev, device_cur):
         return T_prev @ (invert_pose(device_prev) @ device_cur)
     if config.motion_model == "constant_velocity" and T_prev2 is not None:
-        return T_prev @ (invert_pose(T_prev2) @ T_prev)
+        ratio = float(dt_ratio) if np.isfinite(dt_ratio) and dt_ratio > 0 else 1.0
+        return T_prev @ scale_motion(invert_pose(T_prev2) @ T_prev, min(ratio, MAX_DT_RATIO))
     return T_prev.copy()
 
 
 class Tracker:
-    """Tracks frames against the newest published map snapshot (``set_map``)."""
+    """Tracks frames against the newest published map snapshot (``set_map``) with ``config.method``."""
 
     def __init__(self, config: TrackingConfig, render: RenderConfig, use_color: bool, seed: int = 0) -> None:
         self.config = config
@@ -162,16 +216,70 @@ class Tracker:
         self.voxels, self.decoder = voxels, decoder
 
     def track(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool = False) -> TrackResult:
-        """Optimise the pose of ``frame`` starting from ``T_prior``.
+        """Optimise the pose of ``frame`` starting from ``T_prior`` (``[4, 4]`` camera-to-world).
 
         ``prior_from_device``: ``T_prior`` came from device poses, so the soft device prior applies (when
         ``device_prior_weight > 0``).
         """
         t0 = time.perf_counter()
+        if self.voxels is None or self.decoder is None:
+            raise ConfigError("map", "tracker has no map snapshot yet (the first frame initialises the map)")
+        if self.config.method == "sdf":
+            out = self._track_sdf(frame, T_prior, prior_from_device)
+            if self.config.refine_iters > 0 and not out.lost:
+                ref = self._track_render(frame, out.T_world_cam, prior_from_device, self.config.refine_iters)
+                if not ref.lost:
+                    out = dataclasses.replace(out, T_world_cam=ref.T_world_cam,
+                                              iterations=out.iterations + ref.iterations)
+        else:
+            out = self._track_render(frame, T_prior, prior_from_device, self.config.iters)
+        if out.lost:
+            out = dataclasses.replace(out, T_world_cam=np.asarray(T_prior, dtype=np.float64).copy())
+        return dataclasses.replace(out, T_prior=np.asarray(T_prior, dtype=np.float64),
+                                   time_ms=(time.perf_counter() - t0) * 1e3)
+
+    # ------------------------------------------------------------------ sdf (geometric) tracker
+    def _track_sdf(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool) -> TrackResult:
         cfg = self.config
         voxels, decoder = self.voxels, self.decoder
-        if voxels is None or decoder is None:
-            raise ConfigError("map", "tracker has no map snapshot yet (the first frame initialises the map)")
+        dev = voxels.device
+        n_levels = cfg.sdf_levels
+        finest = sample_points(frame, cfg.sdf_points, self.generator,
+                               with_gray=self.use_color and cfg.sdf_w_color > 0)
+        levels = []
+        for lvl in range(n_levels - 1, 0, -1):  # coarser levels: prefixes of the random finest sample
+            k = cfg.sdf_points >> (2 * lvl)
+            levels.append(SdfPoints(finest.p_cam[:k], None if finest.gray is None else finest.gray[:k]))
+        levels.append(finest)
+        w = cfg.device_prior_weight if prior_from_device else 0.0
+        sigma_rad = float(np.deg2rad(cfg.device_prior_sigma_deg))
+        solver = SdfSolverConfig(
+            iters=cfg.sdf_iters, levels=n_levels, huber_m=cfg.sdf_huber_m, max_residual_m=cfg.sdf_max_residual_m,
+            inlier_m=cfg.sdf_inlier_m, w_color=cfg.sdf_w_color,
+            prior_info=(w / cfg.device_prior_sigma_m ** 2, w / sigma_rad ** 2))
+        T0 = torch.as_tensor(T_prior, dtype=torch.float64, device=dev)
+        sol = solve_pose(voxels, decoder, levels, T0, solver)
+        # the one read-back of the frame
+        T_est = nearest_rigid(sol.T.cpu().numpy())
+        cost, inlier, med, n_valid = (float(sol.cost), float(sol.inlier_fraction), float(sol.median_residual_m),
+                                      int(sol.n_valid))
+        lost, reason = False, ""
+        if inlier < cfg.min_valid_fraction or n_valid < 8:
+            lost, reason = True, f"too few inliers ({inlier * 100:.1f} % of {cfg.sdf_points} points)"
+        elif not np.isfinite(cost) or not np.all(np.isfinite(T_est)):
+            lost, reason = True, "non-finite cost or pose"
+        elif med > cfg.sdf_lost_residual_m:
+            lost, reason = True, f"median point-to-surface distance {med * 100:.1f} cm"
+        return TrackResult(frame.index, frame.timestamp_s, T_est, T_prior, cost,
+                           cfg.sdf_iters * n_levels, n_valid, med, lost, reason, 0.0)
+
+    # ------------------------------------------------------------------ render (paper) tracker
+    def _track_render(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool,
+                      iters: int) -> TrackResult:
+        """Adam through the volume renderer. The loop keeps its statistics on the device and reads them back
+        only every ``check_every`` iterations (convergence) and once at the end."""
+        cfg = self.config
+        voxels, decoder = self.voxels, self.decoder
         dev = voxels.device
         T0 = torch.as_tensor(T_prior, dtype=torch.float64, device=dev)
         # Adam moves every coordinate by about the learning rate per step; optimise z with xi = z * scale so
@@ -179,13 +287,16 @@ class Tracker:
         scale = torch.tensor([1.0] * 3 + [cfg.lr_rot_ratio] * 3, dtype=torch.float64, device=dev)
         z = torch.zeros(6, dtype=torch.float64, device=dev, requires_grad=True)
         lr = cfg.lr_device_prior if prior_from_device else cfg.lr
-        opt = torch.optim.Adam([z], lr=lr)
-        still = 0
-        loss_val, valid, it, resid_m = float("nan"), 0, 0, float("nan")
+        opt = adam([z], lr=lr)
         prior_weight = cfg.device_prior_weight if prior_from_device else 0.0
         sigma_rad = np.deg2rad(cfg.device_prior_sigma_deg)
-        decay = cfg.lr_final_ratio ** (1.0 / max(cfg.iters - 1, 1))
-        for it in range(1, cfg.iters + 1):
+        decay = cfg.lr_final_ratio ** (1.0 / max(iters - 1, 1))
+        min_valid = max(8.0, cfg.min_valid_fraction * cfg.rays)
+        max_step = torch.zeros((), dtype=torch.float64, device=dev)  # largest move since the last check
+        loss_t = resid_t = torch.full((), float("nan"), dtype=torch.float64, device=dev)
+        valid_t = torch.zeros((), dtype=torch.int64, device=dev)
+        it = still = 0
+        for it in range(1, iters + 1):
             for group in opt.param_groups:
                 group["lr"] = lr * decay ** (it - 1)
             px = sample_pixels(frame, cfg.rays, self.generator)
@@ -197,16 +308,14 @@ class Tracker:
             with torch.no_grad():
                 ok = out.hit & out.surface
                 resid = (out.depth.detach() - px.depth_m).abs()
-                med = resid[ok].median() if ok.any() else resid.new_tensor(0.0)
-                resid_m = float(med)
+                med = masked_median(resid, ok)
                 inlier = ok & (resid <= (cfg.outlier_k * med.clamp(min=1e-3)).clamp(max=cfg.outlier_max_m))
-            valid = int(inlier.sum())
-            if valid < max(8, cfg.min_valid_fraction * cfg.rays):
-                break
+                valid_t = inlier.sum()
+                enough = (valid_t >= min_valid).to(resid.dtype)  # too few inliers: this step does nothing
             depth_gt = torch.where(inlier, px.depth_m, torch.zeros_like(px.depth_m))
             color_gt = px.color if self.use_color else None
             terms = compute_losses(out, depth_gt, color_gt, cfg.loss)
-            total = terms.total
+            total = terms.total * enough
             if prior_weight > 0:
                 total = total + prior_weight * ((xi[:3] / cfg.device_prior_sigma_m).square().sum()
                                                 + (xi[3:] / sigma_rad).square().sum()).to(total.dtype)
@@ -214,16 +323,21 @@ class Tracker:
             total.backward()
             before = xi.detach().clone()
             opt.step()
-            xi = z.detach() * scale
-            loss_val = float(terms.total.detach())
-            step = (xi.detach() - before).abs()
-            still = still + 1 if float(step.max()) < cfg.converge_tol else 0
-            if it >= cfg.min_iters and still >= cfg.patience:
-                break
+            with torch.no_grad():
+                max_step = torch.maximum(max_step, ((z * scale) - before).abs().max())
+                loss_t, resid_t = terms.total.detach().to(torch.float64), med.to(torch.float64)
+            if it % cfg.check_every == 0 or it == iters:  # one read-back every check_every iterations
+                if int(valid_t) < min_valid:
+                    break
+                still = still + cfg.check_every if float(max_step) < cfg.converge_tol else 0
+                max_step = torch.zeros_like(max_step)
+                if it >= cfg.min_iters and still >= cfg.patience:
+                    break
         with torch.no_grad():
             T_est = nearest_rigid(perturb_right(T0, z * scale).cpu().numpy())
+        loss_val, valid, resid_m = float(loss_t), int(valid_t), float(resid_t)
         lost, reason = False, ""
-        if valid < max(8, cfg.min_valid_fraction * cfg.rays):
+        if valid < min_valid:
             lost, reason = True, f"too few valid rays ({valid} of {cfg.rays})"
         elif not np.isfinite(loss_val) or not np.all(np.isfinite(T_est)):
             lost, reason = True, "non-finite loss or pose"
@@ -231,9 +345,15 @@ class Tracker:
                 np.median(self._recent_losses)) and resid_m > cfg.spike_residual_m):
             lost, reason = True, (f"loss spike ({loss_val:.4g} vs median {np.median(self._recent_losses):.4g}, "
                                   f"depth residual {resid_m * 100:.1f} cm)")
-        if lost:
-            T_est = np.asarray(T_prior, dtype=np.float64).copy()
-        else:
+        if not lost:
             self._recent_losses.append(loss_val)
-        return TrackResult(frame.index, frame.timestamp_s, T_est, np.asarray(T_prior, dtype=np.float64), loss_val,
-                           it, valid, resid_m, lost, reason, (time.perf_counter() - t0) * 1e3)
+        return TrackResult(frame.index, frame.timestamp_s, T_est, T_prior, loss_val, it, valid, resid_m, lost,
+                           reason, 0.0)
+
+
+def masked_median(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Lower median of ``x [N]`` where ``mask [N]`` (0 when the mask is empty), without a host sync."""
+    n = mask.sum()
+    vals = torch.where(mask, x, torch.full_like(x, float("inf"))).sort().values
+    mid = ((n - 1).clamp(min=0) // 2).reshape(1)  # a tensor index, gathered: x[t] would read t back
+    return torch.where(n > 0, vals.gather(0, mid)[0], x.new_zeros(()))

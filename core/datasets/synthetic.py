@@ -49,6 +49,7 @@ from ..errors import CaptureError, ConfigError, ValidationError
 from ..geometry import make_intrinsics
 from ..trajectory import Trajectory, write_tum_trajectory
 from .frame import BaseCapture, RGBDFrame
+from .profile import CaptureProfile
 from .synthetic_scene import (
     CAMERA_ZONE_MAX_M,
     CAMERA_ZONE_MIN_M,
@@ -140,6 +141,12 @@ class SyntheticConfig:
     motion_scale: float = 1.0
     """Multiplies the per-frame motion (translation and rotation) by running along the same path faster;
     at 1.0 the camera moves ~1-2 cm and ~0.5-1 deg per frame."""
+    yaw_rate_deg_s: float = 0.0
+    """Fast-rotation mode: peak yaw rate (deg/s) of an extra swing of the camera about the world's vertical
+    axis through its own centre, ``yaw(t) = A sin(rate / A * t)`` with amplitude ``A = yaw_swing_deg``
+    (0: off). 180 deg/s at 30 Hz is 6 deg between frames at the fastest point."""
+    yaw_swing_deg: float = 60.0
+    """Amplitude of that swing (degrees); the period is ``2 pi A / rate`` (60 deg at 180 deg/s: 2.1 s)."""
     fps: float = 30.0
     """Frame rate: frame ``i`` has timestamp ``i / fps`` seconds (rounded to 1 us)."""
     max_depth_m: float = 10.0
@@ -164,6 +171,9 @@ class SyntheticConfig:
                 raise ConfigError(name, f"must be > 0 pixels, got {v}")
         if not self.motion_scale > 0:
             raise ConfigError("motion_scale", f"must be > 0, got {self.motion_scale}")
+        if not (self.yaw_rate_deg_s >= 0 and self.yaw_swing_deg > 0):
+            raise ConfigError("yaw_rate_deg_s", "yaw_rate_deg_s must be >= 0 and yaw_swing_deg > 0, got "
+                              f"{self.yaw_rate_deg_s} and {self.yaw_swing_deg}")
         if not self.fps > 0:
             raise ConfigError("fps", f"must be > 0, got {self.fps}")
         if not 0 < self.max_depth_m <= _MAX_DEPTH_LIMIT_M:
@@ -245,6 +255,13 @@ def make_trajectory(config: SyntheticConfig) -> np.ndarray:
     x_r, y_r = cr * x_cam + sr * y_cam, -sr * x_cam + cr * y_cam  # roll about the optical axis
     T = np.zeros((len(s), 4, 4))
     T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = x_r, y_r, z_cam, pos
+    if config.yaw_rate_deg_s > 0:  # fast rotation: swing about the world vertical through the camera centre
+        amp = np.deg2rad(config.yaw_swing_deg)
+        yaw = amp * np.sin(np.deg2rad(config.yaw_rate_deg_s) / amp * np.arange(len(s)) / config.fps)
+        c, si = np.cos(yaw), np.sin(yaw)
+        Rz = np.zeros((len(s), 3, 3))
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -si, si, c, 1.0
+        T[:, :3, :3] = Rz @ T[:, :3, :3]
     T[:, 3, 3] = 1.0
     return T
 
@@ -326,6 +343,9 @@ class SyntheticCapture(BaseCapture):
         self.scene: RoomScene = make_room_scene(c.seed)
         self.trajectory = Trajectory(c.timestamps_s, make_trajectory(c))
         self._renderer = SceneRenderer(self.scene)
+        self._profile = CaptureProfile("synthetic", c.max_depth_m, has_confidence=c.lidar,
+                                       sensor=f"voxfusion synthetic room {self.width}x{self.height}"
+                                       + (" (LiDAR mode)" if c.lidar else ""))
 
     def __len__(self) -> int:
         return self.config.n_frames

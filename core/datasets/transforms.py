@@ -21,6 +21,7 @@ import numpy as np
 from ..errors import ValidationError
 from ..geometry import scale_intrinsics
 from .frame import BaseCapture, Capture, RGBDFrame
+from .profile import CaptureProfile
 
 __all__ = [
     "FrameTransform",
@@ -107,6 +108,11 @@ class TransformedCapture(BaseCapture):
     def gt_mesh_path(self) -> Path | None:
         return self.capture.gt_mesh_path
 
+    @property
+    def profile(self) -> CaptureProfile:
+        """The wrapped capture's profile."""
+        return self.capture.profile
+
 
 class SlicedCapture(BaseCapture):
     """A lazy ``start:stop:step`` view of ``capture`` (e.g. every 2nd frame, or the first 100).
@@ -134,3 +140,8 @@ class SlicedCapture(BaseCapture):
     @property
     def gt_mesh_path(self) -> Path | None:
         return self.capture.gt_mesh_path
+
+    @property
+    def profile(self) -> CaptureProfile:
+        """The wrapped capture's profile."""
+        return self.capture.profile

@@ -1,5 +1,6 @@
 """Evaluation: trajectory error (ATE / RPE), multi-view depth consistency, mesh accuracy / completion /
-F-score, depth L1, and the table / JSON helpers the CLI and the benchmarks share."""
+F-score, depth L1, the render-back depth probe (and its outlier / pose perturbations), and the table / JSON
+helpers the CLI and the benchmarks share."""
 
 from .consistency import DepthConsistency, depth_consistency, pair_disagreement
 from .depth import DepthL1Result, depth_l1
@@ -15,6 +16,7 @@ from .mesh import (
     sample_surface,
     views_from_frames,
 )
+from .render_probe import DepthProbe, add_depth_outliers, anchor_first_pose, depth_probe, oblique_rotation
 from .report import format_table, to_jsonable, write_json
 from .trajectory import (
     AlignMode,
@@ -51,6 +53,11 @@ __all__ = [
     "compute_mesh_metrics",
     "DepthL1Result",
     "depth_l1",
+    "DepthProbe",
+    "depth_probe",
+    "add_depth_outliers",
+    "oblique_rotation",
+    "anchor_first_pose",
     "format_table",
     "to_jsonable",
     "write_json",

@@ -45,7 +45,7 @@ def perturbed_prior(f):
 
 def test_tracker_recovers_a_known_perturbation(capture, mapped):
     cfg, mapper = mapped
-    tracker = Tracker(TrackingConfig(rays=384, iters=80), cfg.render, use_color=True)
+    tracker = Tracker(TrackingConfig(method="render", rays=384, iters=80), cfg.render, use_color=True)
     tracker.set_map(mapper.voxels.snapshot(), mapper.decoder)
     f = capture[7]
     T_prior = perturbed_prior(f)
@@ -62,7 +62,7 @@ def test_tracker_ignores_rays_where_most_of_the_view_disagrees_with_the_map(capt
     yet): the median residual is then ~0.5 m, and only the absolute cap keeps those rays out (without it
     this ends 28 cm / 9 degrees off)."""
     cfg, mapper = mapped
-    tracker = Tracker(TrackingConfig(rays=384, iters=80), cfg.render, use_color=False)
+    tracker = Tracker(TrackingConfig(method="render", rays=384, iters=80), cfg.render, use_color=False)
     tracker.set_map(mapper.voxels.snapshot(), mapper.decoder)
     f = capture[7]
     far = np.random.default_rng(0).random(f.depth_m.shape) < 0.6
@@ -78,7 +78,7 @@ def test_device_prior_weight_holds_the_pose_at_the_device_prior(capture, mapped)
     cfg, mapper = mapped
     f = capture[7]
     prior = perturbed_prior(f)
-    tcfg = TrackingConfig(rays=384, iters=80, device_prior_weight=1e6)
+    tcfg = TrackingConfig(method="render", rays=384, iters=80, device_prior_weight=1e6)
     tracker = Tracker(tcfg, cfg.render, use_color=True)
     tracker.set_map(mapper.voxels.snapshot(), mapper.decoder)
     held = tracker.track(frame_to_device(f, "cpu"), prior, prior_from_device=True)
@@ -175,3 +175,16 @@ def test_realtime_mode_runs_concurrently_and_shuts_down_cleanly(capture):
     assert len(slam.mesh().faces) > 0
     with pytest.raises(Exception, match="finishing or closed"):
         slam.submit(capture[0])
+
+
+def test_constant_velocity_prior_stretches_over_skipped_frames():
+    """Three frames of a camera turning 3 deg and moving 2 cm per frame: when the next frame comes two
+    intervals later (one dropped), the prior is the pose two steps on, rotation included."""
+    step = se3_exp(torch.tensor([0.02, 0.0, 0.0, 0.0, np.deg2rad(3.0), 0.0], dtype=torch.float64)).numpy()
+    T1 = np.eye(4)
+    T2 = T1 @ step
+    T4 = T2 @ step @ step
+    prior = predict_pose(T2, T1, TrackingConfig(), dt_ratio=2.0)
+    dt, da = pose_error(prior, T4)
+    assert dt < 1e-3 and da < 0.05, (dt, da)
+    np.testing.assert_allclose(predict_pose(T2, T1, TrackingConfig(), dt_ratio=1.0), T2 @ step, atol=1e-12)

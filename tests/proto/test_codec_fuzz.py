@@ -155,8 +155,9 @@ def test_header_value_mutations(msg, edits):
         node = header
         keys = path.split(".")
         for k in keys[:-1]:
-            node = node.get(k) if isinstance(node, dict) else (node[int(k)] if isinstance(node, list) and
-                                                                 int(k) < len(node) else None)
+            # an earlier edit may have replaced a parent with another type: then the path leads nowhere
+            node = node.get(k) if isinstance(node, dict) else (
+                node[int(k)] if isinstance(node, list) and k.isdigit() and int(k) < len(node) else None)
         last = keys[-1]
         if isinstance(node, dict):
             if delete:

@@ -264,6 +264,9 @@ def test_tum_layout_round_trip(tmp_path: Path):
     back = TUMCapture(out)
     assert open_capture(out).__class__ is TUMCapture
     assert len(back) == len(cap) and back.intrinsics_source.endswith("intrinsics.txt")
+    # the reader knows it is our synthetic room (rgb.txt's header), with exact depth and LiDAR confidence
+    assert back.profile == cap.profile.with_(sensor=back.profile.sensor)
+    assert (back.profile.kind, back.profile.max_depth_m, back.profile.has_confidence) == ("synthetic", 10.0, True)
     np.testing.assert_allclose(back.K, cap.K, atol=1e-12)
     for i in range(len(cap)):
         f, g = cap[i], back[i]
@@ -287,6 +290,7 @@ def test_replica_layout_round_trip(tmp_path: Path):
     back = ReplicaCapture(out)
     assert open_capture(out).__class__ is ReplicaCapture
     assert len(back) == len(cap)
+    assert (back.profile.kind, back.profile.has_confidence) == ("synthetic", False)  # gt_mesh.ply marks it
     np.testing.assert_allclose(back.K, cap.K, atol=1e-12)
     assert back.depth_scale == 6553.5
     for i in range(len(cap)):
@@ -310,3 +314,19 @@ def test_cli_synth_writes_a_capture(tmp_path: Path):
     assert len(back) == 2 and back[0].depth_m.shape == (24, 32)
     res = runner.invoke(app, ["synth", str(out)])
     assert res.exit_code == 2 and "out_dir" in res.output
+
+
+def test_fast_rotation_mode_reaches_the_requested_yaw_rate():
+    """180 deg/s at 30 Hz: the fastest frame-to-frame rotation is ~6 deg (the swing) plus the slow base
+    motion; with the mode off it stays around a degree."""
+    from voxfusion.core.datasets.synthetic import SyntheticConfig, make_trajectory
+
+    def max_step_deg(cfg):
+        T = make_trajectory(cfg)
+        R = np.einsum("nji,njk->nik", T[:-1, :3, :3], T[1:, :3, :3])
+        return np.degrees(np.arccos(np.clip((np.trace(R, axis1=1, axis2=2) - 1) / 2, -1, 1))).max()
+
+    fast = max_step_deg(SyntheticConfig(n_frames=90, yaw_rate_deg_s=180.0))
+    slow = max_step_deg(SyntheticConfig(n_frames=90))
+    assert 5.0 < fast < 8.0, fast
+    assert slow < 2.0, slow

@@ -1,0 +1,115 @@
+"""Operators and host synchronisations per tracking and per mapping iteration (a proxy for GPU launch cost).
+
+Usage (from the repository root)::
+
+    python bench/bench_ops.py                      # writes bench/results/ops.json
+    python bench/bench_ops.py --label before --out /tmp/ops_before.json   # e.g. on an older checkout
+
+On a GPU every operator is at least one kernel launch (~5-10 us of host time) and every read of a device
+value by the host (``float(t)``, ``int(t.sum())``, ``t[mask]``, ``torch.nonzero``) stalls the host until
+the device has caught up, so these counts, taken with ``torch.profiler`` on the CPU, predict where a GPU
+loop will wait. The map is the synthetic room (320x240, seed 0) mapped at its reference poses over its
+first 10 frames with the ``cpu`` sizes; then:
+
+* ``tracking/render``: the paper's tracker (Adam through the volume renderer), per iteration;
+* ``tracking/sdf``: the geometric tracker (Levenberg-Marquardt on point-to-SDF residuals), per iteration
+  (one field evaluation + one backward pass + a 6x6 solve);
+* ``mapping``: one :meth:`Mapper.optimize` iteration (window of keyframes, render, losses, Adam).
+
+Counted: every ``aten::`` operator event (nested ones included, so a composite op counts with its parts),
+and the ones that make the host wait on a GPU: ``_local_scalar_dense`` (``.item()``, ``float()``,
+``int()``, ``bool()``), ``nonzero`` (boolean-mask indexing, ``torch.nonzero``), ``masked_select``,
+``unique`` variants and ``repeat_interleave`` without an output size. Methods the checked-out engine does
+not have are skipped, so the same script measures an older checkout (``--label before``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from collections import Counter
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT))
+
+import torch  # noqa: E402
+from torch.profiler import ProfilerActivity, profile  # noqa: E402
+
+from bench.machine import machine_info  # noqa: E402
+from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
+from voxfusion.core.eval.report import write_json  # noqa: E402
+from voxfusion.core.framedata import frame_to_device  # noqa: E402
+from voxfusion.core.reconstruct import make_mapper  # noqa: E402
+from voxfusion.core.slam_config import load_preset  # noqa: E402
+from voxfusion.core.tracking import Tracker, TrackingConfig  # noqa: E402
+
+SYNC_OPS = ("aten::_local_scalar_dense", "aten::nonzero", "aten::nonzero_static", "aten::masked_select",
+            "aten::_unique", "aten::_unique2", "aten::unique_dim", "aten::unique_consecutive",
+            "aten::repeat_interleave", "aten::is_nonzero", "aten::equal")
+
+
+def count_ops(fn, repeats: int) -> dict[str, float]:
+    """Profile ``fn()`` ``repeats`` times (after one warm-up call); operator and sync counts per call."""
+    fn()
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(repeats):
+            fn()
+    names = Counter(e.name for e in prof.events() if e.name.startswith("aten::"))
+    syncs = {k: v / repeats for k, v in names.items() if k in SYNC_OPS}
+    return {"aten_ops": sum(names.values()) / repeats, "host_syncs": sum(syncs.values()), "sync_ops": syncs}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--label", default="after", help="name of this measurement in the JSON (default after)")
+    p.add_argument("--out", type=Path, default=REPO_ROOT / "bench" / "results" / "ops.json")
+    p.add_argument("--repeats", type=int, default=3)
+    args = p.parse_args(argv)
+    torch.manual_seed(0)
+    cfg = load_preset("cpu-small", ["device=cpu"])
+    cap = SyntheticCapture(SyntheticConfig(n_frames=12))
+    mapper = make_mapper(cfg)
+    for f in cap.frames(0, 10):
+        mapper.integrate(frame_to_device(f, "cpu"), f.T_world_cam)
+    frame = frame_to_device(cap[10], "cpu")
+    prior = cap[10].T_world_cam
+
+    rows: dict[str, dict] = {}
+    known = {f.name for f in dataclasses.fields(TrackingConfig)}
+    scenarios = {"tracking/render": dict(rays=256, iters=10, min_iters=10, converge_tol=0.0)}
+    if "method" in known:
+        scenarios["tracking/render"]["method"] = "render"
+        scenarios["tracking/sdf"] = dict(method="sdf", sdf_points=2048, sdf_levels=2, sdf_iters=6)
+    for name, kw in scenarios.items():
+        tcfg = TrackingConfig(**kw)
+        tracker = Tracker(tcfg, cfg.render, use_color=True)
+        tracker.set_map(mapper.voxels.snapshot(), mapper.decoder)
+        res = tracker.track(frame, prior)
+        # the sdf tracker evaluates each level once more than it iterates (the starting point)
+        per_call = res.iterations + (tcfg.sdf_levels if kw.get("method") == "sdf" else 0)
+        c = count_ops(lambda t=tracker: t.track(frame, prior), args.repeats)
+        rows[name] = {"iterations_per_frame": res.iterations, "evaluations_per_frame": per_call,
+                      "aten_ops_per_iteration": c["aten_ops"] / per_call,
+                      "host_syncs_per_iteration": c["host_syncs"] / per_call,
+                      "host_syncs_per_frame": c["host_syncs"], "sync_ops_per_frame": c["sync_ops"]}
+    iters = 5
+    c = count_ops(lambda: mapper.optimize(iters, newest=mapper.keyframes[-1]), args.repeats)
+    rows["mapping"] = {"iterations_per_round": iters, "aten_ops_per_iteration": c["aten_ops"] / iters,
+                       "host_syncs_per_iteration": c["host_syncs"] / iters, "sync_ops_per_round": c["sync_ops"]}
+
+    print(f"{'scenario':<18}{'aten ops / it':>15}{'host syncs / it':>17}")
+    for name, r in rows.items():
+        print(f"{name:<18}{r['aten_ops_per_iteration']:>15.0f}{r['host_syncs_per_iteration']:>17.1f}")
+    result = {"label": args.label, "machine": machine_info(), "command": " ".join(sys.argv),
+              "map": "synthetic room 320x240 seed 0, frames 0-9 at reference poses, cpu sizes",
+              "scenarios": rows}
+    write_json(args.out, result)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

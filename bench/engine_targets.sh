@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# The real-time engine's CPU targets, one run after another on a quiet machine (each writes
+# bench/results/<name>.json with the machine, the command and both methods' metrics):
+#   * synthetic room 320x240, 100 frames, seeds 0/1/2: voxfusion (the preset `voxfusion run` picks) vs the
+#     TSDF baseline in the same run;
+#   * the same room under fast rotation (yaw swings peaking at 180 deg/s at 30 Hz), seeds 0/1/2, and the
+#     paper's render tracker beside it on seed 0;
+#   * 7-Scenes redkitchen frames 0-499 (baseline once: it is deterministic; voxfusion seeds 0/1/2);
+#   * TUM fr1_desk (9 frames) and fr3 structure_notexture_far (120 frames), seeds 0/1/2.
+# Usage: bash bench/engine_targets.sh [--quick]   (--quick: seed 0 only)
+set -u
+cd "$(dirname "$0")/.."
+PY=${PY:-.venv/bin/python}
+DATA=${DATA:-../shared/data}
+SEEDS="0 1 2"
+[ "${1:-}" = "--quick" ] && SEEDS="0"
+mkdir -p bench/logs
+run() {  # name, then bench/run.py arguments
+    local name=$1; shift
+    echo "[targets] $name"
+    $PY bench/run.py "$@" --name "$name" --no-progress > "bench/logs/$name.log" 2>&1 || echo "[targets] $name FAILED (bench/logs/$name.log)"
+}
+for s in $SEEDS; do
+    run "targets_synthetic_100f_seed$s" --synthetic --frames 100 --seed "$s" --method baseline voxfusion
+done
+for s in $SEEDS; do
+    run "targets_fastrot_100f_seed$s" --synthetic --frames 100 --seed "$s" --yaw-rate-deg-s 180 --method baseline voxfusion
+done
+run "targets_fastrot_100f_seed0_render_tracker" --synthetic --frames 100 --seed 0 --yaw-rate-deg-s 180 \
+    --method voxfusion --vf-set tracking.method=render
+if [ -d "$DATA/sevenscenes_redkitchen" ]; then
+    run "targets_sevenscenes_500f_seed0" --capture "$DATA/sevenscenes_redkitchen" --max-frames 500 --method baseline voxfusion
+    for s in $SEEDS; do
+        [ "$s" = 0 ] && continue
+        run "targets_sevenscenes_500f_seed$s" --capture "$DATA/sevenscenes_redkitchen" --max-frames 500 \
+            --method voxfusion --vf-set "seed=$s"
+    done
+fi
+for cap in tum_fr1_desk_9frames tum_fr3_structure_notexture_far_120; do
+    [ -d "$DATA/$cap" ] || continue
+    for s in $SEEDS; do
+        run "targets_${cap}_seed$s" --capture "$DATA/$cap" --method baseline voxfusion --vf-set "seed=$s"
+    done
+done

@@ -1,0 +1,232 @@
+"""Geometric tracking: Levenberg-Marquardt on point-to-SDF residuals (``tracking.method: sdf``).
+
+The paper tracks by volume rendering (:mod:`.tracking`'s ``render`` method: dozens of decoder calls per
+ray, ~20-30 Adam steps). The map already holds a signed distance field, so a frame's back-projected depth
+points, moved into the world with the right pose, must sit on its zero level set. This module drives
+``sdf(T @ p_cam)`` to zero directly:
+
+* residual ``r_i = sdf(R p_i + t)`` (metres) for ``N`` camera-frame points ``p_i`` sampled among the
+  frame's valid pixels; optionally a photometric residual ``w_c * (gray(colour(x_i)) - gray_i)`` from the
+  colour head at the same point;
+* Jacobian w.r.t. a right perturbation ``T exp(xi)``, ``xi = (rho, phi)`` (:mod:`.lie`): with
+  ``g = d sdf / dx`` (autograd w.r.t. the points, one backward pass) and ``g_c = R^T g``,
+  ``J_i = [g_c, p_i x g_c]`` (``d x / d rho = R``, ``d x / d phi = -R [p_i]_x``);
+* robust Huber weights (scale ``huber_m``); points outside allocated voxels, non-finite, or with
+  ``|r|`` beyond ``max_residual_m`` (the SDF saturates at the truncation in free space, so its gradient
+  carries no information there) get weight 0 and a constant cost, so leaving the map never pays;
+* 6x6 normal equations ``(H + lambda diag(H)) delta = -b`` solved on the device; a step is kept only if it
+  lowers the cost, else ``lambda`` grows and the step is retried from the best pose. Accept / reject is a
+  ``torch.where`` on device tensors: the loop runs a fixed number of iterations and never waits for the
+  host (one read-back per frame, at the end);
+* coarse to fine: ``levels`` rounds with 4x fewer points per coarser level.
+
+Everything is float32 on the map's device except poses and the normal equations (float64). The device
+prior (ARKit motion) enters as a Gaussian on the accumulated correction ``xi`` (first order: the sum of
+accepted steps), in the same information form as the data term.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .field import SDFDecoder, interpolate_unchecked, local_coords
+from .framedata import FrameData
+from .lie import perturb_right
+from .voxels import VoxelMap
+
+__all__ = ["SdfSolverConfig", "SdfPoints", "SdfSolution", "sample_points", "solve_pose", "linearize", "solve_spd"]
+
+_GRAY = (0.299, 0.587, 0.114)
+
+
+@dataclass(frozen=True)
+class SdfSolverConfig:
+    """Options of :func:`solve_pose` (see ``TrackingConfig`` for the user-facing names)."""
+
+    iters: int = 6
+    """Levenberg-Marquardt iterations per level (each one field evaluation + one backward pass)."""
+    levels: int = 2
+    huber_m: float = 0.01
+    """Huber scale of the SDF residual (metres); also the data term's noise scale for the device prior."""
+    max_residual_m: float = 0.08
+    """Points with |sdf| beyond this are outliers (weight 0, constant cost)."""
+    inlier_m: float = 0.03
+    """|sdf| below this counts as an inlier for the lost-frame statistics."""
+    w_color: float = 0.0
+    """Weight of the photometric residual (gray level in [0, 1]) relative to the SDF residual in metres."""
+    huber_color: float = 0.1
+    lambda_init: float = 1e-3
+    prior_info: tuple[float, float] = (0.0, 0.0)
+    """Information (1 / sigma^2, in the data term's units) of the device prior on translation (1/m^2) and
+    rotation (1/rad^2); 0 = no prior."""
+
+
+@dataclass
+class SdfPoints:
+    """A frame's sampled points: ``p_cam [N, 3]`` float32 camera-frame metres, ``gray [N]`` in [0, 1] or
+    None."""
+
+    p_cam: torch.Tensor
+    gray: torch.Tensor | None
+
+
+@dataclass
+class SdfSolution:
+    """Result of :func:`solve_pose`, all device tensors (read back once by the caller).
+
+    ``T [4, 4]`` float64 best pose; ``cost`` 0-dim mean robust cost; ``inlier_fraction`` 0-dim share of the
+    finest level's points with |sdf| < ``inlier_m``; ``median_residual_m`` 0-dim median |sdf| over the
+    points inside the map (0 when none); ``n_valid`` 0-dim count of points inside the map and below
+    ``max_residual_m``.
+    """
+
+    T: torch.Tensor
+    cost: torch.Tensor
+    inlier_fraction: torch.Tensor
+    median_residual_m: torch.Tensor
+    n_valid: torch.Tensor
+
+
+def sample_points(frame: FrameData, n: int, generator: torch.Generator | None = None,
+                  with_gray: bool = False) -> SdfPoints:
+    """Back-project ``n`` random valid pixels (with replacement; fixed count, so every step has static
+    shapes) into camera-frame points ``[n, 3]`` (metres)."""
+    pick = torch.randint(0, frame.n_valid, (n,), generator=generator, device="cpu").to(frame.valid_idx.device)
+    flat = frame.valid_idx[pick]
+    w = frame.width
+    u = (flat % w).to(torch.float32)
+    v = torch.div(flat, w, rounding_mode="floor").to(torch.float32)
+    z = frame.depth_m.reshape(-1)[flat].to(torch.float32)
+    K = frame.K.to(torch.float32)
+    p = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
+    gray = None
+    if with_gray and frame.color is not None:
+        rgb = frame.color.reshape(-1, 3)[flat]
+        gray = rgb @ torch.tensor(_GRAY, dtype=rgb.dtype, device=rgb.device)
+    return SdfPoints(p, gray)
+
+
+def _huber_weight(r: torch.Tensor, k: float) -> torch.Tensor:
+    a = r.abs()
+    return torch.where(a <= k, torch.ones_like(a), k / a.clamp(min=1e-12))
+
+
+def _huber_cost(r: torch.Tensor, k: float) -> torch.Tensor:
+    a = r.abs()
+    return torch.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))
+
+
+def solve_spd(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Solve ``A x = b`` for a small symmetric positive definite ``A [n, n]`` (``b [n]``) by Gauss-Jordan
+    elimination without pivoting (safe for SPD matrices): ``n`` rounds of whole-matrix tensor operations, so
+    it never waits for the device (LAPACK's solvers read pivots back on the CPU). Tested against
+    :func:`torch.linalg.solve`."""
+    n = A.shape[0]
+    M = torch.cat([A, b[:, None]], 1)  # [n, n + 1] augmented
+    rows = torch.arange(n, device=A.device)
+    for k in range(n):
+        pivot_row = M[k] / M[k, k]
+        M = torch.where((rows == k)[:, None], pivot_row[None, :], M - M[:, k:k + 1] * pivot_row[None, :])
+    return M[:, n]
+
+
+def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Tensor,
+              cfg: SdfSolverConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor,
+                                              torch.Tensor]:
+    """Residuals and normal equations at pose ``T [4, 4]`` (float64).
+
+    Returns ``(cost, H [6, 6], b [6], r [N], ok [N])``: mean robust cost (in units of ``huber_m^2``),
+    ``H = J^T W J`` and ``b = J^T W r`` in float64 (same units), the SDF residuals (metres) and the
+    mask of points inside the map and below ``max_residual_m``. No host synchronisation.
+    """
+    dtype = voxels.embeddings.dtype
+    R = T[:3, :3].to(dtype)
+    p_cam = pts.p_cam.to(dtype)
+    x = (p_cam @ R.T + T[:3, 3].to(dtype)).detach().requires_grad_(True)
+    idx = voxels.lookup_voxels(x.detach())
+    inside = idx >= 0
+    idx = idx.clamp(min=0)
+    with torch.enable_grad():
+        loc = local_coords(voxels, x, idx)
+        feats = interpolate_unchecked(voxels, x, idx, loc)
+        sdf, rgb = decoder(feats, loc)
+        use_color = cfg.w_color > 0 and rgb is not None and pts.gray is not None
+        grads = torch.autograd.grad(sdf.sum(), x, retain_graph=use_color)[0]
+        if use_color:
+            gray_pred = rgb @ torch.tensor(_GRAY, dtype=rgb.dtype, device=rgb.device)
+            g_col = torch.autograd.grad(gray_pred.sum(), x)[0]
+    r = sdf.detach()
+    ok = inside & torch.isfinite(r) & (r.abs() < cfg.max_residual_m) & torch.isfinite(grads).all(-1)
+    s = cfg.huber_m
+
+    def terms(res: torch.Tensor, g_world: torch.Tensor, k: float, scale: float,
+              valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        g_cam = torch.where(valid[:, None], g_world @ R, torch.zeros_like(g_world))
+        J = torch.cat([g_cam, torch.cross(p_cam, g_cam, dim=-1)], -1).to(torch.float64) * scale  # [N, 6]
+        rs = torch.where(valid, res, torch.zeros_like(res)).to(torch.float64) * scale
+        w = _huber_weight(rs, k * scale) * valid
+        cost = torch.where(valid, _huber_cost(rs, k * scale),
+                           _huber_cost(torch.full_like(rs, cfg.max_residual_m * scale), k * scale))
+        H = (J * w[:, None]).T @ J
+        b = (J * w[:, None]).T @ rs
+        return cost.mean(), H, b
+
+    # everything in units of the SDF noise scale: residual / huber_m
+    cost, H, b = terms(r, grads, s, 1.0 / s, ok)
+    if use_color:
+        rc = (gray_pred.detach() - pts.gray.to(dtype)) * cfg.w_color
+        okc = ok & torch.isfinite(rc)
+        cc, Hc, bc = terms(rc, g_col.detach() * cfg.w_color, cfg.huber_color * cfg.w_color, 1.0 / s, okc)
+        cost, H, b = cost + cc, H + Hc, b + bc
+    n = r.shape[0]
+    return cost, H / n, b / n, r, ok
+
+
+def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T_init: torch.Tensor,
+               cfg: SdfSolverConfig) -> SdfSolution:
+    """Levenberg-Marquardt from ``T_init [4, 4]`` float64 over ``levels`` (coarse first). Sync-free."""
+    dev = T_init.device
+    T_best = T_init.to(torch.float64)
+    eye = torch.eye(6, dtype=torch.float64, device=dev)
+    info = torch.tensor([cfg.prior_info[0]] * 3 + [cfg.prior_info[1]] * 3, dtype=torch.float64, device=dev)
+    xi_acc = torch.zeros(6, dtype=torch.float64, device=dev)
+    n_points = max(p.p_cam.shape[0] for p in levels)
+    r = ok = None
+    cost_best = torch.zeros((), dtype=torch.float64, device=dev)
+    for pts in levels:
+        # the prior's weight is per point of the data term's mean, so it does not depend on N
+        def evaluate(T: torch.Tensor, xi: torch.Tensor, pts: SdfPoints = pts) -> tuple[torch.Tensor, ...]:
+            cost, H, b, r, ok = linearize(voxels, decoder, pts, T, cfg)
+            H = H + torch.diag(info) / n_points
+            b = b + info * xi / n_points
+            cost = cost + 0.5 * (info * xi * xi).sum() / n_points
+            return cost, H, b, r, ok
+
+        cost_best, H_best, b_best, r, ok = evaluate(T_best, xi_acc)
+        lam = torch.full((), cfg.lambda_init, dtype=torch.float64, device=dev)
+        for _ in range(cfg.iters):
+            A = H_best + lam * (torch.diag(torch.diagonal(H_best)) + 1e-9 * eye)
+            delta = solve_spd(A, -b_best)
+            delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+            T_c = perturb_right(T_best, delta)
+            xi_c = xi_acc + delta
+            cost_c, H_c, b_c, r_c, ok_c = evaluate(T_c, xi_c)
+            better = cost_c < cost_best
+            T_best = torch.where(better, T_c, T_best)
+            xi_acc = torch.where(better, xi_c, xi_acc)
+            cost_best = torch.where(better, cost_c, cost_best)
+            H_best = torch.where(better, H_c, H_best)
+            b_best = torch.where(better, b_c, b_best)
+            r = torch.where(better, r_c, r)
+            ok = torch.where(better, ok_c, ok)
+            lam = torch.where(better, (lam * 0.3).clamp(min=1e-7), lam * 5.0)
+    assert r is not None and ok is not None
+    a = r.abs()
+    inlier = (ok & (a < cfg.inlier_m)).to(torch.float64).mean()
+    inside_abs = torch.where(ok, a, torch.full_like(a, float("inf")))
+    n_valid = ok.sum()
+    mid = ((n_valid - 1).clamp(min=0) // 2).reshape(1)
+    med = torch.where(n_valid > 0, inside_abs.sort().values.gather(0, mid)[0], a.new_zeros(()))
+    return SdfSolution(T_best, cost_best, inlier, med, n_valid)
