@@ -125,19 +125,21 @@ class SDFDecoder(nn.Module):
         ang = (x[:, :, None] * freqs).reshape(x.shape[0], -1)
         return torch.cat([features, x, torch.sin(ang), torch.cos(ang)], -1)
 
-    def forward(self, features: torch.Tensor,
-                local_xyz: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def forward(self, features: torch.Tensor, local_xyz: torch.Tensor | None = None,
+                with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Decode ``features [K, embed_dim]`` (and ``local_xyz [K, 3]`` in [0, 1]^3 if encoded).
 
+        ``with_color=False`` skips the colour head (geometry-only callers such as the SDF tracker).
+
         Returns:
-            ``sdf_m [K]`` metres and ``rgb [K, 3]`` in [0, 1] (None when ``use_color`` is False).
+            ``sdf_m [K]`` metres and ``rgb [K, 3]`` in [0, 1] (None without a colour head or colour).
         """
         if features.dim() != 2 or features.shape[1] != self.config.embed_dim:
             raise ShapeError("features", tuple(features.shape), f"[K, {self.config.embed_dim}]")
         x = self.encode_input(features, local_xyz)
         out = self.sdf_net(x)
         sdf_m = out[:, 0] * self.config.sdf_scale_m
-        if self.color_net is None:
+        if self.color_net is None or not with_color:
             return sdf_m, None
         return sdf_m, self.color_net(torch.cat([out[:, 1:], x], -1))
 

@@ -151,8 +151,9 @@ def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Te
     with torch.enable_grad():
         loc = local_coords(voxels, x, idx)
         feats = interpolate_unchecked(voxels, x, idx, loc)
-        sdf, rgb = decoder(feats, loc)
-        use_color = cfg.w_color > 0 and rgb is not None and pts.gray is not None
+        want_color = cfg.w_color > 0 and pts.gray is not None
+        sdf, rgb = decoder(feats, loc, with_color=want_color)
+        use_color = want_color and rgb is not None
         grads = torch.autograd.grad(sdf.sum(), x, retain_graph=use_color)[0]
         if use_color:
             gray_pred = rgb @ torch.tensor(_GRAY, dtype=rgb.dtype, device=rgb.device)
