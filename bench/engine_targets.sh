@@ -23,6 +23,9 @@ run() {  # name, then bench/run.py arguments
 for s in $SEEDS; do
     run "targets_synthetic_100f_seed$s" --synthetic --frames 100 --seed "$s" --method baseline voxfusion
 done
+# what the outlier defences cost on clean synthetic depth (mesh completion: slivers the evidence masks)
+run "targets_synthetic_100f_seed0_no_evidence" --synthetic --frames 100 --seed 0 --method voxfusion \
+    --vf-set mapping.evidence.enabled=false
 for s in $SEEDS; do
     run "targets_fastrot_100f_seed$s" --synthetic --frames 100 --seed "$s" --yaw-rate-deg-s 180 --method baseline voxfusion
 done

@@ -221,7 +221,8 @@ class SlamSystem:
                 res = None
                 rec = FrameRecord(frame.index, frame.timestamp_s, prior, lost=True, received_at=received_at)
             else:
-                res = self.tracker.track(data, prior, prior_from_device)
+                with self._tracking_threads():
+                    res = self.tracker.track(data, prior, prior_from_device)
                 rec = FrameRecord(frame.index, frame.timestamp_s, res.T_world_cam, lost=res.lost, tracking=res,
                                   received_at=received_at)
         rec.data = None if rec.lost else data
@@ -239,6 +240,22 @@ class SlamSystem:
         if self.on_pose is not None:
             self.on_pose(rec)
         return rec
+
+    @contextmanager
+    def _tracking_threads(self) -> Iterator[None]:
+        """Offline mode on the CPU: run tracking with ``tracking.cpu_threads`` intra-op threads (its operations
+        are small, and on a 2-core CPU two threads were slower than one), mapping with torch's setting. The
+        thread count is process-wide, so realtime mode (tracking and mapping at once) leaves it alone."""
+        n = self.config.tracking.cpu_threads
+        if n <= 0 or self.device.type != "cpu" or self.config.mode != "offline" or torch.get_num_threads() == n:
+            yield
+            return
+        before = torch.get_num_threads()
+        torch.set_num_threads(n)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(before)
 
     def _map(self, rec: FrameRecord, optimize: bool = True) -> None:
         step = self.mapper.integrate(rec.data, rec.T_tracked, optimize=optimize)
