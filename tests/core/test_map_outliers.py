@@ -192,7 +192,7 @@ def test_active_mask_and_evidence_survive_state_dict_snapshot_and_old_states():
 # ---------------------------------------------------------------- evidence
 def _wall_frame(width: int = 160, height: int = 120) -> RGBDFrame:
     depth = np.full((height, width), 2.5, np.float32)  # a wall 2.5 m away
-    depth[50:53, 70:73] = 0.7  # a small 3 x 3 px blob in front: real, but barely observed (9 of ~800 px)
+    depth[50:52, 70:73] = 0.7  # a small 2 x 3 px blob in front: real, but barely observed (6 of ~900 px)
     return RGBDFrame(depth_m=depth, K=make_intrinsics(100.0, 100.0, (width - 1) / 2, (height - 1) / 2),
                      timestamp_s=0.0, T_world_cam=np.eye(4))
 
