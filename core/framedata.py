@@ -16,7 +16,7 @@ from .datasets.frame import RGBDFrame
 from .depth_filter import DepthFilterConfig, depth_outlier_mask
 from .errors import ValidationError
 
-__all__ = ["FrameData", "PixelBatch", "frame_to_device", "sample_pixels"]
+__all__ = ["FrameData", "PixelBatch", "frame_to_device", "sample_pixels", "sample_valid_pixels"]
 
 _DEFAULT_DEPTH_FILTER = DepthFilterConfig()
 
@@ -94,8 +94,8 @@ def frame_to_device(frame: RGBDFrame, device: torch.device | str, min_depth_m: f
                      K=torch.as_tensor(frame.K, dtype=torch.float64, device=device), valid_idx=valid_idx)
 
 
-def sample_pixels(frame: FrameData, n: int, generator: torch.Generator | None = None) -> PixelBatch:
-    """Draw ``n`` pixels uniformly (with replacement) among the frame's valid-depth pixels.
+def sample_valid_pixels(frame: FrameData, n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """``[n]`` int64 flat indices ``v * W + u`` drawn uniformly (with replacement) among the valid pixels.
 
     Raises:
         ValidationError: the frame has no valid depth pixel.
@@ -103,7 +103,16 @@ def sample_pixels(frame: FrameData, n: int, generator: torch.Generator | None = 
     if frame.n_valid == 0:
         raise ValidationError("depth_m", f"frame {frame.index} has no valid depth pixel to sample")
     pick = torch.randint(0, frame.n_valid, (n,), generator=generator, device="cpu").to(frame.valid_idx.device)
-    flat = frame.valid_idx[pick]
+    return frame.valid_idx[pick]
+
+
+def sample_pixels(frame: FrameData, n: int, generator: torch.Generator | None = None) -> PixelBatch:
+    """Draw ``n`` pixels uniformly (with replacement) among the frame's valid-depth pixels.
+
+    Raises:
+        ValidationError: the frame has no valid depth pixel.
+    """
+    flat = sample_valid_pixels(frame, n, generator)
     w = frame.width
     u = (flat % w).to(torch.float64)
     v = torch.div(flat, w, rounding_mode="floor").to(torch.float64)

@@ -258,7 +258,7 @@ class Tracker:
         w = cfg.device_prior_weight if prior_from_device else 0.0
         sigma_rad = float(np.deg2rad(cfg.device_prior_sigma_deg))
         solver = SdfSolverConfig(
-            iters=cfg.sdf_iters, levels=n_levels, huber_m=cfg.sdf_huber_m, max_residual_m=cfg.sdf_max_residual_m,
+            iters=cfg.sdf_iters, huber_m=cfg.sdf_huber_m, max_residual_m=cfg.sdf_max_residual_m,
             inlier_m=cfg.sdf_inlier_m, w_color=cfg.sdf_w_color,
             prior_info=(w / cfg.device_prior_sigma_m ** 2, w / sigma_rad ** 2))
         T0 = torch.as_tensor(T_prior, dtype=torch.float64, device=dev)

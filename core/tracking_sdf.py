@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import torch
 
 from .field import SDFDecoder, interpolate_unchecked, local_coords
-from .framedata import FrameData
+from .framedata import FrameData, sample_valid_pixels
 from .lie import perturb_right
 from .voxels import VoxelMap
 
@@ -47,7 +47,6 @@ class SdfSolverConfig:
 
     iters: int = 6
     """Levenberg-Marquardt iterations per level (each one field evaluation + one backward pass)."""
-    levels: int = 2
     huber_m: float = 0.01
     """Huber scale of the SDF residual (metres); also the data term's noise scale for the device prior."""
     max_residual_m: float = 0.08
@@ -93,8 +92,7 @@ def sample_points(frame: FrameData, n: int, generator: torch.Generator | None = 
                   with_gray: bool = False) -> SdfPoints:
     """Back-project ``n`` random valid pixels (with replacement; fixed count, so every step has static
     shapes) into camera-frame points ``[n, 3]`` (metres)."""
-    pick = torch.randint(0, frame.n_valid, (n,), generator=generator, device="cpu").to(frame.valid_idx.device)
-    flat = frame.valid_idx[pick]
+    flat = sample_valid_pixels(frame, n, generator)
     w = frame.width
     u = (flat % w).to(torch.float32)
     v = torch.div(flat, w, rounding_mode="floor").to(torch.float32)
