@@ -1,9 +1,12 @@
-"""Render a mesh to a PNG for checking by eye (matplotlib, no display needed).
+"""Render a mesh to a PNG for checking by eye: a thin wrapper around ``voxfusion.core.mesh.view``
+(the same ray-cast renderer as ``voxfusion view``, which has more options: poses, captures, comparisons).
 
-    python bench/mesh_view.py out/mesh.ply out/mesh.png [--faces 40000] [--elev 35 --azim -60]
+    python bench/mesh_view.py out/mesh.ply out/mesh.png [--compare gt.ply] [--elev 35 --azim -60]
+                              [--size 960x720] [--up 0,0,1]
 
-Faces are drawn with their vertex colours (random subset when the mesh is large), flat shaded by the
-angle to a fixed light, from one oblique viewpoint.
+The meshes are drawn side by side from one automatic oblique viewpoint that frames them all, with their
+vertex colours, headlight shading and correct depth ordering; back faces are culled, so a closed room
+shows its inside.
 """
 
 from __future__ import annotations
@@ -11,54 +14,38 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import matplotlib
+import trimesh
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import trimesh  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+from voxfusion.core.mesh import intrinsics_from_fov, overview_pose, write_mesh_pictures
 
 
-def render_mesh_png(mesh: trimesh.Trimesh, out: Path, max_faces: int = 40000, elev: float = 35.0,
-                    azim: float = -60.0, title: str = "") -> Path:
-    """Write a PNG view of ``mesh`` to ``out``."""
-    faces = mesh.faces
-    if len(faces) > max_faces:
-        faces = faces[np.random.default_rng(0).choice(len(faces), max_faces, replace=False)]
-    tris = mesh.vertices[faces]
-    colors = np.asarray(mesh.visual.vertex_colors)[:, :3][faces].mean(1) / 255.0
-    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12
-    shade = 0.45 + 0.55 * np.abs(normals @ np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]))
-    fig = plt.figure(figsize=(9, 7), dpi=110)
-    ax = fig.add_subplot(projection="3d")
-    ax.add_collection3d(Poly3DCollection(tris, facecolors=np.clip(colors * shade[:, None], 0, 1), linewidths=0))
-    lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
-    c, r = (lo + hi) / 2, (hi - lo).max() / 2
-    ax.set_xlim(c[0] - r, c[0] + r)
-    ax.set_ylim(c[1] - r, c[1] + r)
-    ax.set_zlim(c[2] - r, c[2] + r)
-    ax.view_init(elev=elev, azim=azim)
-    ax.set_axis_off()
-    ax.set_title(title or f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, bbox_inches="tight")
-    plt.close(fig)
-    return out
+def render_mesh_png(mesh: trimesh.Trimesh, out: Path, elev: float = 35.0, azim: float = -60.0,
+                    title: str = "", size: tuple[int, int] = (960, 720), up: tuple[float, float, float] = (0, 0, 1),
+                    others: dict[str, trimesh.Trimesh] | None = None) -> Path:
+    """Write a PNG view of ``mesh`` (and ``others``, label -> mesh, beside it) to ``out``."""
+    width, height = size
+    K = intrinsics_from_fov(width, height, 60.0)
+    panels = {title or f"{len(mesh.vertices)} vertices, {len(mesh.faces)} faces": mesh, **(others or {})}
+    T = overview_pose(list(panels.values()), K, width, height, up=up, elevation_deg=elev, azimuth_deg=azim)
+    return write_mesh_pictures(out.parent, panels, K, T, width, height, name=out.name, cull_back_faces=True)
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("mesh", type=Path)
     p.add_argument("png", type=Path)
-    p.add_argument("--faces", type=int, default=40000)
+    p.add_argument("--compare", type=Path, nargs="*", default=[], help="meshes drawn beside it")
     p.add_argument("--elev", type=float, default=35.0)
     p.add_argument("--azim", type=float, default=-60.0)
+    p.add_argument("--size", default="960x720", help="WIDTHxHEIGHT of each panel")
+    p.add_argument("--up", default="0,0,1", help="world up X,Y,Z (0,1,0 for ARKit worlds)")
     p.add_argument("--title", default="")
     a = p.parse_args()
-    mesh = trimesh.load(a.mesh, process=False, force="mesh")
-    print(render_mesh_png(mesh, a.png, a.faces, a.elev, a.azim, a.title))
+    load = lambda path: trimesh.load(path, process=False, force="mesh")  # noqa: E731
+    width, height = (int(v) for v in a.size.lower().split("x"))
+    up = tuple(float(v) for v in a.up.split(","))
+    others = {str(path): load(path) for path in a.compare}
+    print(render_mesh_png(load(a.mesh), a.png, a.elev, a.azim, a.title, (width, height), up, others))
 
 
 if __name__ == "__main__":

@@ -15,7 +15,11 @@ Every method reads the same frames through the same reader. Evaluation (``voxfus
 * Mesh accuracy / completion / completion ratio (< 5 cm) / F-score (5 cm), exact point-to-surface
   distances from ``--mesh-samples`` samples per mesh, when the capture has a ground-truth mesh (the
   synthetic room, Replica, ScanNet); the GT samples are culled to what every ``--cull-stride``-th
-  reference camera saw (frustum + depth test), so completion only asks for observed surfaces.
+  reference camera saw (frustum + depth test), so completion only asks for observed surfaces (each mesh
+  result says which GT it was measured against: ``gt_part`` ``"observed"`` or ``"full"``).
+* Phantom-surface share (``voxfusion.core.eval.phantom``, no GT needed): the share of each method's mesh
+  area farther than 5 cm from the capture's depth placed with that method's own estimated poses (<= 200
+  frames), so a method is not rewarded for surfaces no depth supports.
 * fps = frames / processing time (frame loading excluded); peak MB = the peak increase of this process's
   RSS during the method's run (absolute peak in the JSON), see ``bench/machine.py``.
 
@@ -51,6 +55,7 @@ from voxfusion.core.eval import (  # noqa: E402
     compute_rpe,
     format_table,
     load_mesh,
+    phantom_for_capture,
     views_from_frames,
     write_json,
 )
@@ -284,9 +289,11 @@ def _cm(x: float | None) -> float | None:
 
 
 def evaluate(result: MethodResult, reference: Trajectory | None, gt_mesh: trimesh.Trimesh | None,
-             views: list | None, mesh_samples: int) -> dict:
-    """Trajectory and mesh metrics of one method (``None`` where they do not apply, with the reason)."""
-    out: dict = {"ate_aligned": None, "ate_unaligned": None, "rpe": None, "mesh": None, "notes": []}
+             views: list | None, mesh_samples: int, capture: Capture | None = None) -> dict:
+    """Trajectory and mesh metrics of one method (``None`` where they do not apply, with the reason); with
+    ``capture``, also the phantom-surface share of its mesh (its depth placed with the method's poses)."""
+    out: dict = {"ate_aligned": None, "ate_unaligned": None, "rpe": None, "mesh": None, "phantom": None,
+                 "notes": []}
     if reference is None:
         out["notes"].append("no reference poses: trajectory metrics n/a")
     else:
@@ -303,12 +310,18 @@ def evaluate(result: MethodResult, reference: Trajectory | None, gt_mesh: trimes
     else:
         config = MeshEvalConfig(n_samples=mesh_samples, method="exact")
         out["mesh"] = compute_mesh_metrics(result.mesh, gt_mesh, config, views=views)
+    if capture is not None and result.mesh is not None:
+        try:
+            out["phantom"] = phantom_for_capture(result.mesh, capture, result.trajectory, n_samples=mesh_samples,
+                                                 max_diff_s=1e-3)
+        except VoxFusionError as e:
+            out["notes"].append(f"phantom share n/a: {e}")
     return out
 
 
 def _row(name: str, result: MethodResult, ev: dict) -> dict:
     na = "n/a"
-    ate, raw, mesh = ev["ate_aligned"], ev["ate_unaligned"], ev["mesh"]
+    ate, raw, mesh, phantom = ev["ate_aligned"], ev["ate_unaligned"], ev["mesh"], ev["phantom"]
     return {
         "method": name,
         "frames": len(result.trajectory),
@@ -318,6 +331,7 @@ def _row(name: str, result: MethodResult, ev: dict) -> dict:
         "comp cm": _cm(mesh.completion_m) if mesh else na,
         "ratio %": 100.0 * mesh.completion_ratio if mesh else na,
         "F-score %": 100.0 * mesh.fscore if mesh else na,
+        "phantom %": 100.0 * phantom.share if phantom else na,
         "fps": result.fps,
         "peak MB": result.memory.increase_mb,
     }
@@ -405,7 +419,7 @@ def run_benchmark(args: argparse.Namespace, argv: list[str]) -> dict:
 
     rows, doc_methods = [], {}
     for method, result in results.items():
-        ev = evaluate(result, reference, gt_mesh, views, args.mesh_samples)
+        ev = evaluate(result, reference, gt_mesh, views, args.mesh_samples, capture)
         rows.append(_row(method, result, ev))
         doc_methods[method] = {
             "description": METHODS[method].description,
@@ -417,6 +431,7 @@ def run_benchmark(args: argparse.Namespace, argv: list[str]) -> dict:
             "ate_unaligned": ev["ate_unaligned"],
             "rpe": ev["rpe"],
             "mesh": ev["mesh"],
+            "phantom": ev["phantom"],
             "notes": ev["notes"],
             "config": result.config,
             "extra": result.extra,
@@ -445,6 +460,8 @@ def run_benchmark(args: argparse.Namespace, argv: list[str]) -> dict:
         "evaluation": {"ate": "RMSE; aligned = SE(3) Umeyama, unaligned = first pose anchored",
                        "mesh_method": "exact", "mesh_samples": args.mesh_samples,
                        "mesh_threshold_m": 0.05, "gt_culled_to_views_every": args.cull_stride if views else None,
+                       "mesh_gt_part": "observed" if views else "full",
+                       "phantom": "share of the mesh area > 5 cm from the depth placed with the method's own poses",
                        "peak_mb": "peak RSS increase during the method's run"},
         "table": table,
         "methods": doc_methods,

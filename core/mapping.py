@@ -34,7 +34,7 @@ from .field import FieldConfig, SDFDecoder, query
 from .framedata import FrameData, sample_pixels
 from .lie import perturb_right
 from .losses import LossConfig, LossTerms, compute_losses
-from .mesh import extract_mesh
+from .mesh import extract_map_mesh
 from .optim import adam
 from .render import RenderConfig, camera_rays, render_rays
 from .voxels import VoxelMap
@@ -230,6 +230,7 @@ class Mapper:
         is_kf = (first or self._frames_since_keyframe + 1 >= self.config.keyframe_max_interval
                  or n_new > self.config.keyframe_ratio * max(n_obs, 1))
         self.voxels.allocate(points, self.optimizer)
+        self.voxels.add_surface_points(points)  # where the scene was seen: mesh support (mesh.support)
         if self.config.evidence.enabled:
             observe_frame(self.voxels, frame, T, points, self.config.evidence,
                           point_weight=float(self.config.alloc_stride ** 2))
@@ -316,7 +317,7 @@ class Mapper:
         with torch.no_grad():
             return query(self.voxels, self.decoder, points_world.to(self.device))
 
-    def extract_mesh(self, mesh_res: int = 8):  # noqa: ANN201 - trimesh.Trimesh
-        """Triangle mesh of the zero level set inside allocated, active voxels, with vertex colours."""
-        return extract_mesh(self.voxels.active_voxel_coords, self.voxels.voxel_size_m, self.query,
-                            mesh_res=mesh_res, device=self.device)
+    def extract_mesh(self, mesh_res: int = 20, support: bool = True):  # noqa: ANN201 - trimesh.Trimesh
+        """Triangle mesh of the zero level set inside active voxels where observations support it, with
+        vertex colours (:func:`.mesh.extract_map_mesh`)."""
+        return extract_map_mesh(self.voxels, self.decoder, mesh_res, support)

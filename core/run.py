@@ -2,8 +2,9 @@
 
 Outputs in the run folder: ``trajectory.txt`` (TUM), ``keyframes.json``, ``mesh.ply``, ``voxels.npz``,
 ``voxels.ply``, ``checkpoint.pt``, ``metrics.json`` (ATE when the capture has reference poses, mesh
-accuracy / completion when it has a GT mesh, timings, peak memory) and ``frames.json`` (per-frame
-tracking / mapping times, losses, iterations, lost flags).
+accuracy / completion against the whole GT and against its observed part when it has a GT mesh, the
+phantom-surface share always, timings, peak memory) and ``frames.json`` (per-frame tracking / mapping
+times, losses, iterations, lost flags).
 """
 
 from __future__ import annotations
@@ -23,9 +24,10 @@ from tqdm import tqdm
 from .checkpoint import save_checkpoint
 from .config import config_to_dict
 from .datasets.frame import Capture
-from .errors import ValidationError
+from .errors import ValidationError, VoxFusionError
 from .eval.consistency import depth_consistency
-from .eval.mesh import MeshEvalConfig, compute_mesh_metrics, load_mesh, views_from_frames
+from .eval.mesh import MeshEvalConfig, evaluate_mesh_against_gt, load_mesh, views_from_capture
+from .eval.phantom import phantom_for_capture
 from .eval.report import write_json
 from .eval.trajectory import TrajectoryEvalConfig, compute_ate
 from .mesh import export_mesh
@@ -34,7 +36,8 @@ from .slam_config import VoxFusionConfig
 from .trajectory import Trajectory, write_tum_trajectory
 from .voxel_export import export_voxels
 
-__all__ = ["RunResult", "run_capture", "reference_trajectory", "evaluate_run", "evaluate_mesh", "peak_memory_mb"]
+__all__ = ["RunResult", "run_capture", "reference_trajectory", "evaluate_run", "evaluate_mesh", "evaluate_phantom",
+           "peak_memory_mb"]
 
 
 @dataclass
@@ -71,8 +74,10 @@ def reference_trajectory(capture: Capture, frames: int, step: int = 1) -> Trajec
 
 
 def evaluate_run(trajectory: Trajectory, mesh: trimesh.Trimesh, capture: Capture, frames: int,
-                 mesh_samples: int = 200_000) -> dict:
-    """ATE (aligned and anchored at the first frame) and mesh metrics (whole GT and observed part)."""
+                 mesh_samples: int = 200_000, tracked: Trajectory | None = None) -> dict:
+    """ATE (aligned and anchored at the first frame), mesh metrics (``mesh_full_gt`` / ``mesh_observed_gt``)
+    and the phantom-surface share (``phantom``: the mesh against the depth placed with ``tracked``, the
+    estimate without its lost frames; ``trajectory`` when not given)."""
     metrics: dict = {}
     ref = reference_trajectory(capture, frames)
     if ref is not None and len(trajectory) >= 3:
@@ -82,6 +87,8 @@ def evaluate_run(trajectory: Trajectory, mesh: trimesh.Trimesh, capture: Capture
         if len(trajectory) == len(ref) == frames:  # every frame has a pose (offline runs)
             metrics["depth_consistency"] = compare_depth_consistency(capture, trajectory, ref)
     metrics.update(evaluate_mesh(mesh, capture, frames, mesh_samples))
+    metrics.update(evaluate_phantom(mesh, capture, frames, trajectory if tracked is None else tracked,
+                                    mesh_samples, max_diff_s=1e-3))
     return metrics
 
 
@@ -103,17 +110,33 @@ def compare_depth_consistency(capture: Capture, estimate: Trajectory, reference:
 
 
 def evaluate_mesh(mesh: trimesh.Trimesh, capture: Capture, frames: int, mesh_samples: int = 200_000) -> dict:
-    """Exact accuracy / completion against the capture's GT mesh (``{}`` without one): ``mesh_full``
-    against the whole GT, ``mesh_observed`` against the GT culled to what the cameras saw (<= 200 views)."""
+    """Exact accuracy / completion against the capture's GT mesh (``{}`` without one), by
+    :func:`~.eval.mesh.evaluate_mesh_against_gt` (what ``voxfusion eval --capture`` runs too): ``mesh_full_gt``
+    against the whole GT, ``mesh_observed_gt`` against the GT culled to what the reference cameras saw
+    (:func:`~.eval.mesh.views_from_capture`, <= 200 views; absent when the capture has no reference poses).
+    The mesh is evaluated as it is, in the frame the engine built it in."""
     gt = getattr(capture, "gt_mesh", None)
     if gt is None and capture.gt_mesh_path is not None:
         gt = load_mesh(capture.gt_mesh_path)
-    if gt is None or not len(mesh.faces):
+    if gt is None or not len(mesh.faces) or not mesh.area > 0:
         return {}
-    cfg = MeshEvalConfig(n_samples=mesh_samples)
-    views = views_from_frames(list(capture.frames(0, frames, max(1, frames // 200))))
-    return {"mesh_full": compute_mesh_metrics(mesh, gt, cfg),
-            "mesh_observed": compute_mesh_metrics(mesh, gt, cfg, views=views)}
+    views = views_from_capture(capture, frames) or None
+    return evaluate_mesh_against_gt(mesh, gt, views, MeshEvalConfig(n_samples=mesh_samples)).summary()
+
+
+def evaluate_phantom(mesh: trimesh.Trimesh, capture: Capture, frames: int, poses: Trajectory | None,
+                     mesh_samples: int = 200_000, max_diff_s: float = 1e-3) -> dict:
+    """Phantom-surface share of ``mesh`` (``{"phantom": PhantomResult}``; needs no GT): its area farther than
+    5 cm from the depth of the first ``frames`` frames (<= 200 of them) placed with ``poses`` (the
+    estimate's, the frame the mesh lives in), or with the capture's reference poses when ``poses`` is None.
+    ``{}`` for an empty mesh; ``{"phantom_skipped": reason}`` when no frame has a pose or valid depth."""
+    if not len(mesh.faces) or not mesh.area > 0:
+        return {}
+    try:
+        return {"phantom": phantom_for_capture(mesh, capture, poses, frames, n_samples=mesh_samples,
+                                               max_diff_s=max_diff_s)}
+    except VoxFusionError as e:
+        return {"phantom_skipped": str(e)}
 
 
 def run_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path | None = None,
@@ -155,7 +178,7 @@ def run_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     traj = slam.trajectory()
     mesh = slam.mesh()
     stats = slam.stats()
-    metrics = evaluate_run(traj, mesh, capture, n) if evaluate else {}
+    metrics = evaluate_run(traj, mesh, capture, n, tracked=slam.trajectory(include_lost=False)) if evaluate else {}
     result = RunResult(slam, traj, mesh, stats, wall, metrics, Path(out_dir) if out_dir else None)
     if out_dir is not None:
         write_run_outputs(result, capture, n)

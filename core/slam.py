@@ -39,7 +39,7 @@ from .field import SDFDecoder
 from .framedata import FrameData, frame_to_device
 from .geometry import invert_pose, nearest_rigid
 from .mapping import Keyframe, Mapper, MappingStep
-from .mesh import extract_mesh
+from .mesh import extract_map_mesh
 from .render import RenderedImage, render_depth_image
 from .slam_config import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
@@ -455,13 +455,6 @@ class SlamSystem:
         if cached is not None and cached[0] == snap.version:
             return cached[1]
 
-        def query(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
-            from .field import query as field_query
-
-            with torch.no_grad():
-                return field_query(snap.voxels, snap.decoder, points.to(snap.voxels.device))
-
-        mesh = extract_mesh(snap.voxels.active_voxel_coords, snap.voxels.voxel_size_m, query,
-                            mesh_res=self.config.mesh_res, device=snap.voxels.device)
+        mesh = extract_map_mesh(snap.voxels, snap.decoder, self.config.mesh_res, self.config.mesh_support)
         self._mesh_cache = (snap.version, mesh)
         return mesh

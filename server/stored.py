@@ -101,7 +101,7 @@ class StoredMap:
                 data = mesh_file.read_bytes()
             else:
                 mesh = (trimesh.load(mesh_file, file_type="ply", process=False) if fresh
-                        else ckpt.mapper.extract_mesh(ckpt.config.mesh_res))
+                        else ckpt.mapper.extract_mesh(ckpt.config.mesh_res, ckpt.config.mesh_support))
                 data = mesh_bytes(mesh, fmt)
             self._mesh_cache = {k: v for k, v in self._mesh_cache.items() if k[0] == version}
             self._mesh_cache[(version, fmt)] = data

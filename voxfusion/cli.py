@@ -11,7 +11,7 @@ from voxfusion.core.errors import VoxFusionError
 
 app = typer.Typer(
     name="voxfusion",
-    help="Vox-Fusion dense RGB-D SLAM: evaluate, map, run and serve.",
+    help="Vox-Fusion dense RGB-D SLAM: evaluate, map, run, serve and view.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -25,6 +25,7 @@ _COMMAND_MODULES = (
     "voxfusion.commands.serve",
     "voxfusion.commands.stream",
     "voxfusion.commands.bridge",
+    "voxfusion.commands.view",
 )
 
 for _name in _COMMAND_MODULES:

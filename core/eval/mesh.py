@@ -21,7 +21,11 @@ Metrics (``d(x, S)``: distance from point ``x`` to surface / sample set ``S``):
 
 Optional culling restricts the GT samples to what the cameras observed (see :func:`cull_to_views`);
 the estimate's samples are never culled, and accuracy is always measured against the whole GT (its
-surface, or all its samples for ``"sampled"``).
+surface, or all its samples for ``"sampled"``). Every :class:`MeshMetrics` says which GT it was measured
+against (``gt_part``: ``"full"`` or ``"observed"``), and :func:`evaluate_mesh_against_gt` gives both from one
+set of samples: the one code path ``voxfusion run``, ``voxfusion map`` and ``voxfusion eval`` share, so the
+same mesh, GT and views give the same numbers everywhere. Completion against the whole GT asks for
+surfaces no camera saw; quote the observed-GT numbers unless the capture covers the whole scene.
 
 Example::
 
@@ -57,9 +61,14 @@ __all__ = [
     "point_to_surface_distance",
     "cull_to_views",
     "compute_mesh_metrics",
+    "GTPart",
+    "MeshGTEvaluation",
+    "evaluate_mesh_against_gt",
+    "views_from_capture",
 ]
 
 MeshMethod = Literal["exact", "sampled"]
+GTPart = Literal["full", "observed"]
 
 
 @dataclass(frozen=True)
@@ -100,6 +109,8 @@ class MeshMetrics:
         n_samples: samples drawn per mesh.
         n_gt_samples: GT samples evaluated (fewer than ``n_samples`` after culling).
         method: ``"exact"`` or ``"sampled"``.
+        gt_part: ``"full"`` (completion / recall against the whole GT) or ``"observed"`` (against the
+            GT culled to what the cameras saw).
     """
 
     accuracy_m: float
@@ -112,6 +123,29 @@ class MeshMetrics:
     n_samples: int
     n_gt_samples: int
     method: str
+    gt_part: GTPart = "full"
+
+
+@dataclass(frozen=True)
+class MeshGTEvaluation:
+    """One mesh against one GT, both ways (from the same samples, so the figures are comparable).
+
+    Attributes:
+        full_gt: completion / recall against the whole GT mesh (``gt_part == "full"``).
+        observed_gt: against the GT culled to what the views observed (``gt_part == "observed"``), or
+            ``None`` when no views were given. Accuracy and precision are the same in both.
+    """
+
+    full_gt: MeshMetrics
+    observed_gt: MeshMetrics | None = None
+
+    def summary(self) -> dict[str, MeshMetrics]:
+        """``{"mesh_full_gt": ..., "mesh_observed_gt": ...}`` (the second only with views): the keys
+        ``metrics.json`` and ``eval.json`` use."""
+        out = {"mesh_full_gt": self.full_gt}
+        if self.observed_gt is not None:
+            out["mesh_observed_gt"] = self.observed_gt
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,6 +191,24 @@ def views_from_frames(frames: Iterable, use_depth: bool = True,
         h, w = f.depth_m.shape
         views.append(CameraView(f.K, w, h, T, f.depth_m if use_depth else None))
     return views
+
+
+def views_from_capture(capture: Iterable, frames: int | None = None, max_views: int = 200) -> list[CameraView]:
+    """Culling views from a capture's reference poses: every ``max(1, frames // max_views)``-th of its
+    first ``frames`` frames (all by default), with their depth maps; frames without a reference pose are
+    skipped (``[]`` when none has one). ``voxfusion run`` and ``voxfusion eval --capture`` both cull with
+    this, so they cull the same way.
+
+    Args:
+        capture: a ``Capture`` (``len`` and ``frames(start, stop, step)``).
+        frames: how many of its first frames were used (e.g. the run's ``--max-frames``).
+        max_views: at most about this many views (cost is ``O(GT samples x views)``).
+    """
+    if max_views < 1:
+        raise ValidationError("max_views", f"must be >= 1, got {max_views}")
+    n = len(capture) if frames is None else min(int(frames), len(capture))
+    chosen = [f for f in capture.frames(0, n, max(1, n // max_views)) if f.T_world_cam is not None]
+    return views_from_frames(chosen)
 
 
 def load_mesh(path: str | Path) -> trimesh.Trimesh:
@@ -259,8 +311,8 @@ def cull_to_views(points: np.ndarray, views: Iterable[CameraView], depth_abs_tol
     return seen
 
 
-def _fractions(d_est: np.ndarray, d_gt: np.ndarray, config: MeshEvalConfig, method: str,
-               n_samples: int) -> MeshMetrics:
+def _fractions(d_est: np.ndarray, d_gt: np.ndarray, config: MeshEvalConfig, n_samples: int,
+               gt_part: GTPart) -> MeshMetrics:
     precision = float(np.mean(d_est < config.threshold_m))
     recall = float(np.mean(d_gt < config.threshold_m))
     fscore = 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
@@ -274,14 +326,63 @@ def _fractions(d_est: np.ndarray, d_gt: np.ndarray, config: MeshEvalConfig, meth
         threshold_m=config.threshold_m,
         n_samples=n_samples,
         n_gt_samples=int(len(d_gt)),
-        method=method,
+        method=config.method,
+        gt_part=gt_part,
     )
+
+
+def evaluate_mesh_against_gt(est: trimesh.Trimesh | str | Path, gt: trimesh.Trimesh | str | Path,
+                             views: Iterable[CameraView] | None = None,
+                             config: MeshEvalConfig | None = None) -> MeshGTEvaluation:
+    """Accuracy, completion, completion ratio and precision / recall / F-score of ``est`` against the
+    whole ``gt`` and (with ``views``) against the part of ``gt`` the views observed.
+
+    Args:
+        est: estimated mesh (a ``trimesh.Trimesh`` or a path for :func:`load_mesh`), in the GT's frame, metres.
+        gt: ground-truth mesh.
+        views: cameras that observed the scene (:func:`views_from_capture`); ``None``: whole GT only.
+        config: sample count, thresholds, seed and method (``"exact"`` or ``"sampled"``).
+
+    Raises:
+        ValidationError: a mesh without triangles, or views that observe no GT sample.
+
+    Example::
+
+        >>> import trimesh
+        >>> gt = trimesh.creation.icosphere(subdivisions=3)
+        >>> r = evaluate_mesh_against_gt(gt, gt, config=MeshEvalConfig(n_samples=500))
+        >>> r.full_gt.gt_part, r.observed_gt is None
+        ('full', True)
+    """
+    config = config or MeshEvalConfig()
+    est_mesh = load_mesh(est) if isinstance(est, str | Path) else _check_mesh(est, "estimate mesh")
+    gt_mesh = load_mesh(gt) if isinstance(gt, str | Path) else _check_mesh(gt, "GT mesh")
+    seeds = np.random.SeedSequence(config.seed).spawn(2)
+    p_est = sample_surface(est_mesh, config.n_samples, seed=np.random.default_rng(seeds[0]))
+    p_gt = sample_surface(gt_mesh, config.n_samples, seed=np.random.default_rng(seeds[1]))
+    seen = None
+    if views is not None:
+        seen = cull_to_views(p_gt, views)
+        if not seen.any():
+            raise ValidationError("views", "no GT sample is observed by any view; check poses and intrinsics")
+    if config.method == "exact":
+        d_est = point_to_surface_distance(p_est, gt_mesh)
+        d_gt = point_to_surface_distance(p_gt, est_mesh)
+    else:
+        d_est, _ = cKDTree(p_gt).query(p_est, workers=-1)
+        d_gt, _ = cKDTree(p_est).query(p_gt, workers=-1)
+    d_est, d_gt = np.asarray(d_est), np.asarray(d_gt)
+    full = _fractions(d_est, d_gt, config, config.n_samples, "full")
+    observed = None if seen is None else _fractions(d_est, d_gt[seen], config, config.n_samples, "observed")
+    return MeshGTEvaluation(full, observed)
 
 
 def compute_mesh_metrics(est: trimesh.Trimesh | str | Path, gt: trimesh.Trimesh | str | Path,
                          config: MeshEvalConfig | None = None,
                          views: Iterable[CameraView] | None = None) -> MeshMetrics:
-    """Accuracy, completion, completion ratio and precision / recall / F-score of ``est`` against ``gt``.
+    """Accuracy, completion, completion ratio and precision / recall / F-score of ``est`` against ``gt``:
+    :func:`evaluate_mesh_against_gt`'s whole-GT figures, or its observed-GT figures when ``views`` are given
+    (``gt_part`` says which).
 
     Args:
         est: estimated mesh (a ``trimesh.Trimesh`` or a path for :func:`load_mesh`), world frame, metres.
@@ -292,21 +393,5 @@ def compute_mesh_metrics(est: trimesh.Trimesh | str | Path, gt: trimesh.Trimesh 
     Raises:
         ValidationError: a mesh without triangles, or culling that leaves no GT sample.
     """
-    config = config or MeshEvalConfig()
-    est_mesh = load_mesh(est) if isinstance(est, str | Path) else _check_mesh(est, "estimate mesh")
-    gt_mesh = load_mesh(gt) if isinstance(gt, str | Path) else _check_mesh(gt, "GT mesh")
-    seeds = np.random.SeedSequence(config.seed).spawn(2)
-    p_est = sample_surface(est_mesh, config.n_samples, seed=np.random.default_rng(seeds[0]))
-    p_gt = sample_surface(gt_mesh, config.n_samples, seed=np.random.default_rng(seeds[1]))
-    p_gt_all = p_gt
-    if views is not None:
-        p_gt = p_gt[cull_to_views(p_gt, views)]
-        if len(p_gt) == 0:
-            raise ValidationError("views", "no GT sample is observed by any view; check poses and intrinsics")
-    if config.method == "exact":
-        d_est = point_to_surface_distance(p_est, gt_mesh)
-        d_gt = point_to_surface_distance(p_gt, est_mesh)
-    else:
-        d_est, _ = cKDTree(p_gt_all).query(p_est, workers=-1)
-        d_gt, _ = cKDTree(p_est).query(p_gt, workers=-1)
-    return _fractions(np.asarray(d_est), np.asarray(d_gt), config, config.method, config.n_samples)
+    r = evaluate_mesh_against_gt(est, gt, views, config)
+    return r.full_gt if r.observed_gt is None else r.observed_gt

@@ -9,7 +9,7 @@ from .morton import (
     morton_decode,
     morton_encode,
 )
-from .voxel_map import MemoryReport, VoxelMap
+from .voxel_map import SURFACE_CELLS, MemoryReport, VoxelMap
 
 __all__ = [
     "MORTON_BITS",
@@ -21,4 +21,5 @@ __all__ = [
     "morton_decode",
     "MemoryReport",
     "VoxelMap",
+    "SURFACE_CELLS",
 ]

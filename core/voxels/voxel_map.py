@@ -62,7 +62,14 @@ _ALLOCATED_GRID = -1
 
 _STATE_VERSION = 1
 """Version of :meth:`VoxelMap.state_dict`. The evidence keys (``voxel_hits``, ``voxel_free``,
-``voxel_active``) are optional: a state without them loads with zero evidence and every voxel active."""
+``voxel_active``) are optional: a state without them loads with zero evidence and every voxel active;
+without ``voxel_surface`` the map loads with :attr:`VoxelMap.has_surface_evidence` False."""
+
+SURFACE_CELLS = 8
+"""Surface cells per voxel edge of the observed-surface mask (``8**3 = 512`` bits, 64 bytes per voxel;
+2.5 cm cells in 0.2 m voxels)."""
+
+_SURFACE_BYTES = SURFACE_CELLS**3 // 8
 
 
 @dataclass(frozen=True)
@@ -107,6 +114,10 @@ class VoxelMap:
         voxel_free: ``[M]`` float32 free-space evidence: pixel rays that crossed the voxel well in front of
             their observed surface.
         voxel_active: ``[M]`` bool; inactive voxels read as empty (module docstring, :meth:`set_active`).
+        voxel_surface: ``[M, 64]`` uint8 bit mask of the voxel's ``8 x 8 x 8`` surface cells that held an
+            observed depth point (bit ``(x * 8 + y) * 8 + z`` of the cell at local ``(x, y, z)``;
+            :meth:`add_surface_points`): where the scene was actually seen, so mesh extraction can drop
+            surface the field invents where nothing was observed (:mod:`..mesh.support`).
     """
 
     _dense_grid_max_cells: int = 1 << 26
@@ -140,6 +151,9 @@ class VoxelMap:
         self._voxel_hits = torch.empty(0, dtype=torch.float32, device=device)
         self._voxel_free = torch.empty(0, dtype=torch.float32, device=device)
         self._voxel_active = torch.empty(0, dtype=torch.bool, device=device)
+        self._voxel_surface = torch.empty(0, _SURFACE_BYTES, dtype=torch.uint8, device=device)
+        self.has_surface_evidence = True
+        """False for a map loaded from a state saved before the surface mask existed (mask all zero)."""
         self._n_inactive = 0
         self._bounds: tuple[torch.Tensor, torch.Tensor] | None = None
         self._grids: dict[int, VoxelIndexGrid | None] = {}
@@ -180,6 +194,10 @@ class VoxelMap:
     @property
     def voxel_free(self) -> torch.Tensor:
         return self._voxel_free
+
+    @property
+    def voxel_surface(self) -> torch.Tensor:
+        return self._voxel_surface
 
     @property
     def voxel_active(self) -> torch.Tensor:
@@ -430,6 +448,7 @@ class VoxelMap:
         self._voxel_hits = torch.cat([self._voxel_hits, self._voxel_hits.new_zeros(k)])
         self._voxel_free = torch.cat([self._voxel_free, self._voxel_free.new_zeros(k)])
         self._voxel_active = torch.cat([self._voxel_active, self._voxel_active.new_ones(k)])
+        self._voxel_surface = torch.cat([self._voxel_surface, self._voxel_surface.new_zeros(k, _SURFACE_BYTES)])
         self._update_bounds(new_coords)
         self._invalidate_grids()
         if optimizer is not None:
@@ -497,6 +516,55 @@ class VoxelMap:
             tables.append(table)
         self._voxel_hits, self._voxel_free = tables
 
+    def add_surface_points(self, points_world: torch.Tensor) -> int:
+        """Mark the surface cells (:data:`SURFACE_CELLS` per voxel edge) that hold observed depth points.
+
+        Args:
+            points_world: ``[N, 3]`` float world points in metres (posed depth points). Points outside
+                every allocated voxel are ignored.
+
+        Returns the number of cells newly marked. The mask is replaced, never updated in place, so
+        snapshots keep their own.
+        """
+        if not isinstance(points_world, torch.Tensor) or points_world.dim() != 2 or points_world.shape[1] != 3:
+            raise ShapeError("points_world", tuple(getattr(points_world, "shape", ())), "[N, 3]")
+        pts = points_world.to(self.device, torch.float64)
+        pts = pts[torch.isfinite(pts).all(dim=1)]
+        cells = torch.floor(pts / self.voxel_size_m * SURFACE_CELLS).to(torch.int64)  # global surface cells
+        cells = torch.unique(cells, dim=0)
+        ijk = torch.div(cells, SURFACE_CELLS, rounding_mode="floor")
+        idx = self.lookup_allocated_cells(ijk)
+        keep = idx >= 0
+        if not bool(keep.any()):
+            return 0
+        local = cells[keep] - ijk[keep] * SURFACE_CELLS
+        bit = (local[:, 0] * SURFACE_CELLS + local[:, 1]) * SURFACE_CELLS + local[:, 2]
+        byte_key = idx[keep] * _SURFACE_BYTES + bit // 8
+        keys, inverse = torch.unique(byte_key, return_inverse=True)
+        # the cells are unique, so per byte the sum of distinct powers of two is their bitwise OR
+        add = torch.zeros(len(keys), dtype=torch.int32, device=self.device)
+        add.index_add_(0, inverse, (1 << (bit % 8)).to(torch.int32))
+        flat = self._voxel_surface.reshape(-1).clone()
+        old = flat[keys]
+        new = old | add.to(torch.uint8)
+        flat[keys] = new
+        self._voxel_surface = flat.view(-1, _SURFACE_BYTES)
+        return int(_popcount8(new).sum() - _popcount8(old).sum())
+
+    def surface_cells(self, active_only: bool = True) -> torch.Tensor:
+        """``[K, 3]`` int64 global coordinates of the observed surface cells.
+
+        A surface cell ``c`` covers ``[c, c + 1) * voxel_size_m / SURFACE_CELLS`` in world metres.
+        """
+        mask = self._voxel_surface
+        rows = torch.arange(self.n_voxels, device=self.device)
+        if active_only and self._n_inactive:
+            mask, rows = mask[self._voxel_active], rows[self._voxel_active]
+        bits = (mask[:, :, None] >> torch.arange(8, device=self.device, dtype=torch.uint8)) & 1  # [M, 64, 8]
+        vox, bit = bits.view(len(rows), -1).nonzero(as_tuple=True)
+        local = torch.stack([bit // SURFACE_CELLS**2, (bit // SURFACE_CELLS) % SURFACE_CELLS, bit % SURFACE_CELLS], 1)
+        return self._voxel_coords[rows[vox]] * SURFACE_CELLS + local
+
     def set_active(self, active: torch.Tensor) -> int:
         """Replace the active mask (``[M]`` bool); returns how many voxels changed state.
 
@@ -519,7 +587,8 @@ class VoxelMap:
         """Counts and byte sizes of the map (and of ``decoder``'s parameters and buffers, if given)."""
         idx_tensors = [self._voxel_codes, self._voxel_coords, self._voxel_vertex_ids, self._vertex_codes,
                        self._sorted_voxel_codes, self._voxel_perm, self._sorted_vertex_codes,
-                       self._vertex_perm, self._voxel_hits, self._voxel_free, self._voxel_active]
+                       self._vertex_perm, self._voxel_hits, self._voxel_free, self._voxel_active,
+                       self._voxel_surface]
         idx_tensors += [g.table for g in self._grids.values() if g is not None]
         dec = 0
         if decoder is not None:
@@ -538,7 +607,8 @@ class VoxelMap:
 
         Keys: ``version``, ``voxel_size_m``, ``embed_dim``, ``init_std``, ``voxel_codes [M]``,
         ``vertex_codes [V]``, ``voxel_vertex_ids [M, 8]``, ``embeddings [V, D]``, the evidence
-        ``voxel_hits [M]``, ``voxel_free [M]`` (float32) and ``voxel_active [M]`` (bool), and ``rng_state``
+        ``voxel_hits [M]``, ``voxel_free [M]`` (float32) and ``voxel_active [M]`` (bool), the observed-surface
+        mask ``voxel_surface [M, 64]`` (uint8; None when :attr:`has_surface_evidence` is False), and ``rng_state``
         (the embedding generator's state, None when unseeded), so later allocations also continue
         identically.
         """
@@ -554,6 +624,7 @@ class VoxelMap:
             "voxel_hits": self._voxel_hits.cpu().clone(),
             "voxel_free": self._voxel_free.cpu().clone(),
             "voxel_active": self._voxel_active.cpu().clone(),
+            "voxel_surface": self._voxel_surface.cpu().clone() if self.has_surface_evidence else None,
             "rng_state": self._generator.get_state() if self._generator is not None else None,
         }
 
@@ -590,6 +661,11 @@ class VoxelMap:
         for name, t in (("voxel_hits", hits), ("voxel_free", free), ("voxel_active", active)):
             if t.shape != (m,):
                 raise ShapeError(f"state_dict.{name}", tuple(t.shape), f"({m},)")
+        surface_known = state.get("voxel_surface") is not None
+        surface = (torch.as_tensor(state["voxel_surface"], device=dev).to(torch.uint8) if surface_known
+                   else torch.zeros(m, _SURFACE_BYTES, dtype=torch.uint8, device=dev))
+        if surface.shape != (m, _SURFACE_BYTES):
+            raise ShapeError("state_dict.voxel_surface", tuple(surface.shape), f"({m}, {_SURFACE_BYTES})")
         self.voxel_size_m = float(state["voxel_size_m"])
         self.embed_dim = int(state["embed_dim"])
         self.init_std = float(state.get("init_std", self.init_std))
@@ -600,6 +676,7 @@ class VoxelMap:
         self._voxel_codes, self._vertex_codes, self._voxel_vertex_ids = vc, tc, vid
         self._voxel_coords = morton_decode(vc)
         self._voxel_hits, self._voxel_free, self._voxel_active = hits.clone(), free.clone(), active.clone()
+        self._voxel_surface, self.has_surface_evidence = surface.clone(), surface_known
         self._n_inactive = int((~active).sum())
         self._bounds = None
         self._update_bounds(self._voxel_coords)
@@ -645,7 +722,7 @@ class VoxelMap:
             return self
         for name in ("_voxel_codes", "_voxel_coords", "_voxel_vertex_ids", "_vertex_codes",
                      "_sorted_voxel_codes", "_voxel_perm", "_sorted_vertex_codes", "_vertex_perm",
-                     "_voxel_hits", "_voxel_free", "_voxel_active"):
+                     "_voxel_hits", "_voxel_free", "_voxel_active", "_voxel_surface"):
             setattr(self, name, getattr(self, name).to(device))
         if self._bounds is not None:
             self._bounds = (self._bounds[0].to(device), self._bounds[1].to(device))
@@ -656,3 +733,9 @@ class VoxelMap:
     def __repr__(self) -> str:
         return (f"VoxelMap(voxel_size_m={self.voxel_size_m}, n_voxels={self.n_voxels}, "
                 f"n_vertices={self.n_vertices}, embed_dim={self.embed_dim}, device={self.device})")
+
+
+def _popcount8(x: torch.Tensor) -> torch.Tensor:
+    """Set bits of each uint8 ``[N]`` as int64 ``[N]``."""
+    x = x.to(torch.int64)
+    return sum((x >> b) & 1 for b in range(8))

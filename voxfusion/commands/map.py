@@ -6,7 +6,8 @@ Example::
 
 Without ``--config`` the preset follows the capture and the device, as for ``voxfusion run``. It writes
 ``mesh.ply``, ``voxels.npz``, ``voxels.ply``, ``checkpoint.pt``, ``trajectory.txt``, ``timings.json`` and
-``metrics.json`` (mesh accuracy / completion when the capture has a GT mesh).
+``metrics.json`` (mesh accuracy / completion against the whole and the observed GT when the capture has a GT
+mesh, keys ``mesh_full_gt`` / ``mesh_observed_gt`` under ``mesh``; the phantom-surface share, ``phantom``).
 """
 
 from __future__ import annotations
@@ -17,12 +18,12 @@ from typing import Annotated
 
 import typer
 
-from voxfusion.commands.run import config_for_capture
+from voxfusion.commands.run import config_for_capture, mesh_metric_rows
 from voxfusion.core.config import config_to_dict
 from voxfusion.core.datasets import open_capture
 from voxfusion.core.eval import format_table, write_json
 from voxfusion.core.reconstruct import map_capture
-from voxfusion.core.run import evaluate_mesh
+from voxfusion.core.run import evaluate_mesh, evaluate_phantom
 
 __all__ = ["register"]
 
@@ -49,21 +50,18 @@ def register(app: typer.Typer) -> None:
         cfg = config_for_capture(cap, config, overrides, device)
         result = map_capture(cap, cfg, out)
         metrics = evaluate_mesh(result.mesh, cap, len(cap), eval_samples)
+        phantom = evaluate_phantom(result.mesh, cap, len(cap), None, eval_samples)  # mapped with reference poses
         summary = result.timing_summary()
         mem = result.mapper.voxels.memory_report(result.mapper.decoder)
         write_json(out / "metrics.json", {
             "capture": str(capture), "config": config_to_dict(result.config), "timings": summary,
-            "memory": dataclasses.asdict(mem), "mesh": metrics,
+            "memory": dataclasses.asdict(mem), "mesh": metrics, **phantom,
             "mesh_vertices": len(result.mesh.vertices), "mesh_faces": len(result.mesh.faces),
         })
         rows = [{"metric": k, "value": v} for k, v in summary.items()]
         rows += [{"metric": "voxels", "value": mem.n_voxels},
                  {"metric": "embeddings [MB]", "value": mem.embedding_bytes / 1e6},
                  {"metric": "decoder [MB]", "value": mem.decoder_bytes / 1e6}]
-        for name, m in metrics.items():
-            gt = name.removeprefix("mesh_")
-            rows += [{"metric": f"accuracy [cm] ({gt} GT)", "value": 100 * m.accuracy_m},
-                     {"metric": f"completion [cm] ({gt} GT)", "value": 100 * m.completion_m},
-                     {"metric": f"completion ratio < 5 cm [%] ({gt} GT)", "value": 100 * m.completion_ratio}]
+        rows += mesh_metric_rows({**metrics, **phantom})
         typer.echo(format_table(rows))
         typer.echo(f"outputs in {out}")

@@ -9,7 +9,8 @@ Without ``--config`` the preset follows the capture's kind and the device
 (:func:`voxfusion.core.slam_config.preset_for`) and the chosen preset is printed with the reason.
 
 writes ``trajectory.txt`` (TUM), ``keyframes.json``, ``mesh.ply``, ``voxels.npz``/``.ply``,
-``checkpoint.pt``, ``metrics.json`` (ATE, mesh metrics, timings, peak memory) and ``frames.json``.
+``checkpoint.pt``, ``metrics.json`` (ATE, mesh metrics against the whole and the observed GT, phantom-surface
+share, timings, peak memory) and ``frames.json``.
 """
 
 from __future__ import annotations
@@ -25,7 +26,29 @@ from voxfusion.core.eval import format_table
 from voxfusion.core.run import run_capture, timing_summary
 from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for, size_warning
 
-__all__ = ["register", "config_for_capture"]
+__all__ = ["register", "config_for_capture", "mesh_metric_rows"]
+
+_GT_LABELS = {"mesh_observed_gt": "vs observed GT", "mesh_full_gt": "vs whole GT"}
+
+
+def mesh_metric_rows(metrics: dict) -> list[dict]:
+    """Table rows for the mesh figures of ``metrics`` (``mesh_observed_gt``, ``mesh_full_gt``, ``phantom``),
+    each labelled with the GT part it was measured against."""
+    rows = []
+    for key, label in _GT_LABELS.items():
+        m = metrics.get(key)
+        if m is not None:
+            rows += [{"metric": f"accuracy [cm] ({label})", "value": 100 * m.accuracy_m},
+                     {"metric": f"completion [cm] ({label})", "value": 100 * m.completion_m},
+                     {"metric": f"completion ratio < 5 cm [%] ({label})",
+                      "value": 100 * m.completion_ratio}]
+    p = metrics.get("phantom")
+    if p is not None:
+        rows.append({"metric": f"phantom surface [%] (> {100 * p.threshold_m:g} cm from observed depth, "
+                               f"{p.poses} poses)", "value": 100 * p.share})
+    elif "phantom_skipped" in metrics:
+        rows.append({"metric": "phantom surface [%]", "value": f"n/a: {metrics['phantom_skipped']}"})
+    return rows
 
 
 def config_for_capture(capture: Capture, config: str | None, overrides: list[str],
@@ -82,11 +105,6 @@ def register(app: typer.Typer) -> None:
             rows.append({"metric": f"depth disagreement [cm] ({name} poses)",
                          "value": " / ".join(f"{v:.2f}" for v in gaps.values()) + "  at frame gaps "
                          + " / ".join(k.split("_")[1] for k in gaps)})
-        for key in ("mesh_full", "mesh_observed"):
-            if key in result.metrics:
-                m = result.metrics[key]
-                rows += [{"metric": f"accuracy [cm] ({key[5:]} GT)", "value": 100 * m.accuracy_m},
-                         {"metric": f"completion [cm] ({key[5:]} GT)", "value": 100 * m.completion_m},
-                         {"metric": f"completion ratio [%] ({key[5:]} GT)", "value": 100 * m.completion_ratio}]
+        rows += mesh_metric_rows(result.metrics)
         typer.echo(format_table(rows))
         typer.echo(f"outputs in {out}")

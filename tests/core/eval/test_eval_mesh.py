@@ -14,9 +14,11 @@ from voxfusion.core.eval import (
     MeshEvalConfig,
     compute_mesh_metrics,
     cull_to_views,
+    evaluate_mesh_against_gt,
     load_mesh,
     point_to_surface_distance,
     sample_surface,
+    views_from_capture,
     views_from_frames,
 )
 from voxfusion.core.geometry import make_intrinsics
@@ -262,3 +264,48 @@ def test_config_and_input_validation():
         compute_mesh_metrics(trimesh.Trimesh(), sphere(), CFG)
     with pytest.raises(ValidationError):
         compute_mesh_metrics(np.zeros((3, 3)), sphere(), CFG)
+
+
+def test_evaluate_mesh_against_gt_labels_whole_and_observed_gt():
+    gt = sphere(1.0, 4)
+    front = faces_below(gt, -0.2)  # the estimate covers only the cap the camera saw
+    T = camera_at(-3.0)
+    views = [CameraView(K, W, H, T, render_sphere_depth(T))]
+    r = evaluate_mesh_against_gt(front, gt, views, CFG)
+    assert r.full_gt.gt_part == "full" and r.observed_gt.gt_part == "observed"
+    assert r.full_gt.completion_ratio < 0.5 and r.full_gt.completion_m > 0.3  # asks for the unseen back
+    assert r.observed_gt.completion_ratio == 1.0 and r.observed_gt.completion_m < 1e-4
+    assert r.observed_gt.accuracy_m == r.full_gt.accuracy_m  # the estimate's samples are never culled
+    assert r.observed_gt.n_gt_samples < 0.4 * CFG.n_samples and r.full_gt.n_gt_samples == CFG.n_samples
+    # The same figures compute_mesh_metrics gives one at a time (it runs this).
+    assert compute_mesh_metrics(front, gt, CFG) == r.full_gt
+    assert compute_mesh_metrics(front, gt, CFG, views=views) == r.observed_gt
+    assert set(r.summary()) == {"mesh_full_gt", "mesh_observed_gt"}
+    alone = evaluate_mesh_against_gt(front, gt, None, CFG)
+    assert alone.observed_gt is None and set(alone.summary()) == {"mesh_full_gt"}
+    assert alone.full_gt == r.full_gt
+    sampled = evaluate_mesh_against_gt(front, gt, views, MeshEvalConfig(n_samples=4000, method="sampled"))
+    assert sampled.observed_gt.method == "sampled" and sampled.observed_gt.gt_part == "observed"
+
+
+def test_views_from_capture_skips_frames_without_poses_and_caps_the_count():
+    from voxfusion.core.datasets.frame import RGBDFrame
+
+    class Cap:
+        def __init__(self, frames: list) -> None:
+            self.f = frames
+
+        def __len__(self) -> int:
+            return len(self.f)
+
+        def frames(self, start: int = 0, stop: int | None = None, step: int = 1):  # noqa: ANN201
+            return iter(self.f[start:stop:step])
+
+    T = camera_at(-3.0)
+    depth = render_sphere_depth(T)
+    frames = [RGBDFrame(depth_m=depth, K=K, timestamp_s=float(i), T_world_cam=T if i % 3 else None)
+              for i in range(12)]
+    assert len(views_from_capture(Cap(frames))) == 8
+    assert len(views_from_capture(Cap(frames), frames=6)) == 4
+    assert len(views_from_capture(Cap(frames), max_views=6)) == 4  # every 2nd frame: 2, 4, 8, 10 have poses
+    assert views_from_capture(Cap(frames), max_views=4) == []  # every 3rd frame: 0, 3, 6, 9, none posed

@@ -1,0 +1,87 @@
+"""Observation support for mesh faces: surface only where depth was actually observed.
+
+The neural field is defined in every allocated voxel, and where no depth point ever landed (behind an
+object, outside the views, in a voxel an outlier allocated) its zero level set can be anything: extraction
+would draw phantom sheets there. Mapping marks the surface cells (:data:`~..voxels.SURFACE_CELLS` per voxel
+edge, 2.5 cm in 0.2 m voxels) that held a posed depth point (:meth:`~..voxels.VoxelMap.add_surface_points`);
+a mesh face is kept only when its centroid lies in such a cell or one of its 26 neighbours (``dilate=1``),
+i.e. within roughly one to two cells (2.5-5 cm at 0.2 m voxels) of an observed depth point.
+
+Example:
+    >>> import torch
+    >>> support = SurfaceSupport(torch.tensor([[0, 0, 40]]), cell_size_m=0.025)
+    >>> support(torch.tensor([[0.01, 0.01, 1.01], [0.2, 0.2, 1.5]])).tolist()
+    [True, False]
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..errors import ShapeError, ValidationError
+from ..voxels import SURFACE_CELLS, VoxelMap
+
+__all__ = ["SurfaceSupport"]
+
+_BITS = 21  # bits per axis of a packed cell key
+
+
+class SurfaceSupport:
+    """Membership test "is this point within ``dilate`` cells of an observed surface cell?".
+
+    Args:
+        cells: ``[K, 3]`` int64 global coordinates of observed cells; cell ``c`` covers
+            ``[c, c + 1) * cell_size_m`` in world metres.
+        cell_size_m: cell edge in metres.
+        dilate: neighbourhood radius in cells (Chebyshev): 0 = the cell itself, 1 = its 3 x 3 x 3 block.
+    """
+
+    def __init__(self, cells: torch.Tensor, cell_size_m: float, dilate: int = 1) -> None:
+        if cells.dim() != 2 or cells.shape[1] != 3:
+            raise ShapeError("cells", tuple(cells.shape), "[K, 3]")
+        if not cell_size_m > 0:
+            raise ValidationError("cell_size_m", f"must be > 0, got {cell_size_m}")
+        if dilate < 0:
+            raise ValidationError("dilate", f"must be >= 0, got {dilate}")
+        self.cell_size_m = float(cell_size_m)
+        self.device = cells.device
+        self.n_cells = len(cells)
+        if self.n_cells == 0:
+            self._keys = torch.empty(0, dtype=torch.int64, device=self.device)
+            self._lo = torch.zeros(3, dtype=torch.int64, device=self.device)
+            self._hi = self._lo - 1
+            return
+        r = torch.arange(-dilate, dilate + 1, device=self.device)
+        offsets = torch.cartesian_prod(r, r, r).view(-1, 3)
+        self._lo = cells.min(0).values - dilate
+        self._hi = cells.max(0).values + dilate
+        if int((self._hi - self._lo).max()) >= 1 << _BITS:
+            raise ValidationError("cells", f"span more than {1 << _BITS} cells on an axis")
+        keys = [self._pack(cells + o - self._lo) for o in offsets]  # one offset at a time bounds memory
+        self._keys = torch.unique(torch.cat(keys))
+
+    @classmethod
+    def from_map(cls, voxel_map: VoxelMap, dilate: int = 1) -> SurfaceSupport | None:
+        """The support of ``voxel_map``'s observed-surface mask; None when the map has no such evidence
+        (a checkpoint saved before it existed), so callers keep every face."""
+        if not voxel_map.has_surface_evidence:
+            return None
+        return cls(voxel_map.surface_cells(), voxel_map.voxel_size_m / SURFACE_CELLS, dilate)
+
+    def __call__(self, points_world: torch.Tensor) -> torch.Tensor:
+        """``[N]`` bool: point ``[N, 3]`` (world metres) lies in a supported cell."""
+        if points_world.dim() != 2 or points_world.shape[1] != 3:
+            raise ShapeError("points_world", tuple(points_world.shape), "[N, 3]")
+        cell = torch.floor(points_world.to(self.device, torch.float64) / self.cell_size_m).to(torch.int64)
+        inside = ((cell >= self._lo) & (cell <= self._hi)).all(dim=1)
+        out = torch.zeros(len(cell), dtype=torch.bool, device=self.device)
+        if self.n_cells == 0 or not bool(inside.any()):
+            return out
+        keys = self._pack(cell[inside] - self._lo)
+        pos = torch.searchsorted(self._keys, keys).clamp(max=len(self._keys) - 1)
+        out[inside] = self._keys[pos] == keys
+        return out
+
+    @staticmethod
+    def _pack(c: torch.Tensor) -> torch.Tensor:
+        return (c[:, 0] << (2 * _BITS)) | (c[:, 1] << _BITS) | c[:, 2]
