@@ -59,6 +59,8 @@ from voxfusion.core.eval import (  # noqa: E402
     views_from_frames,
     write_json,
 )
+from voxfusion.core.mesh.frame import camera_up_forward  # noqa: E402
+from voxfusion.core.run import write_mesh_views  # noqa: E402
 from voxfusion.core.trajectory import Trajectory, write_tum_trajectory  # noqa: E402
 
 __all__ = [
@@ -400,6 +402,25 @@ def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
     args.method = methods
 
 
+def _write_pictures(args: argparse.Namespace, name: str, capture: Capture, results: dict[str, MethodResult],
+                    gt_mesh: trimesh.Trimesh | None) -> list[Path]:
+    """``OUT/<name>_view_frame.png`` (the middle frame's input beside every method's mesh, and the GT mesh,
+    at that frame's pose) and ``OUT/<name>_view_overview.png``. The pose is the reference pose when the
+    frame has one (every mesh here lives in the reference frame: runs start at the first reference pose),
+    else the first method's estimate."""
+    first = next(iter(results.values()))
+    if len(first.trajectory) == 0:
+        return []
+    i = len(first.trajectory) // 2
+    frame = capture[i]
+    T = frame.T_world_cam if frame.T_world_cam is not None else first.trajectory.T_world_cam[i]
+    up, _ = camera_up_forward(first.trajectory.T_world_cam)
+    panels = {method: r.mesh for method, r in results.items()}
+    if gt_mesh is not None:
+        panels["ground truth"] = gt_mesh
+    return write_mesh_views(args.out, panels, capture, i, T, up, prefix=f"{name}_view")
+
+
 def run_benchmark(args: argparse.Namespace, argv: list[str]) -> dict:
     """Run ``args.method`` on the capture, evaluate, print the table; returns the JSON document."""
     capture, gt_mesh, default_name, capture_desc = _open(args)
@@ -441,6 +462,7 @@ def run_benchmark(args: argparse.Namespace, argv: list[str]) -> dict:
             write_tum_trajectory(out_dir / "traj.txt", result.trajectory)
             if result.mesh is not None:
                 result.mesh.export(out_dir / "mesh.ply")
+    pictures = _write_pictures(args, name, capture, results, gt_mesh)
     columns = list(rows[0].keys())
     table = format_table(rows, columns, float_fmt=".2f")
     machine = machine_info()
@@ -465,6 +487,7 @@ def run_benchmark(args: argparse.Namespace, argv: list[str]) -> dict:
                        "peak_mb": "peak RSS increase during the method's run"},
         "table": table,
         "methods": doc_methods,
+        "pictures": [str(p) for p in pictures],
     }
     path = write_json(args.out / f"{name}.json", doc)
     print(f"\nwrote {path}")

@@ -228,20 +228,21 @@ class NeuralField:
         self.voxel_map = voxel_map
         self.decoder = decoder
 
-    def __call__(self, points_world: torch.Tensor,
-                 voxel_idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def __call__(self, points_world: torch.Tensor, voxel_idx: torch.Tensor,
+                 with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
         loc = local_coords(self.voxel_map, points_world, voxel_idx)
         feats = interpolate(self.voxel_map, points_world, voxel_idx, loc)
-        return self.decoder(feats, loc)
+        return self.decoder(feats, loc, with_color=with_color)
 
 
 def query(voxel_map: VoxelMap, decoder: SDFDecoder, points_world: torch.Tensor,
-          chunk: int = 65536) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+          chunk: int = 65536, with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
     """Evaluate the field at arbitrary world points (lookup + interpolate + decode), chunked.
 
     Args:
         points_world: ``[N, 3]`` metres.
         chunk: points per decoder call (bounds memory).
+        with_color: False skips the colour head (``rgb`` is then None), e.g. for SDF-only lattice samples.
 
     Returns:
         ``sdf_m [N]`` (NaN where invalid), ``rgb [N, 3]`` (0 where invalid; None without a colour head),
@@ -256,11 +257,12 @@ def query(voxel_map: VoxelMap, decoder: SDFDecoder, points_world: torch.Tensor,
     dtype = voxel_map.embeddings.dtype
     pts = points_world.to(voxel_map.device, dtype)
     sdf = torch.full((pts.shape[0],), float("nan"), dtype=dtype, device=pts.device)
-    rgb = torch.zeros(pts.shape[0], 3, dtype=dtype, device=pts.device) if decoder.config.use_color else None
+    use_color = decoder.config.use_color and with_color
+    rgb = torch.zeros(pts.shape[0], 3, dtype=dtype, device=pts.device) if use_color else None
     sel = torch.nonzero(valid).squeeze(1)
     for s in range(0, int(sel.numel()), chunk):
         rows = sel[s:s + chunk]
-        d, c = field(pts[rows], idx[rows])
+        d, c = field(pts[rows], idx[rows], with_color=use_color)
         sdf = sdf.index_put((rows,), d)
         if rgb is not None and c is not None:
             rgb = rgb.index_put((rows,), c)

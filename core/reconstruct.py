@@ -43,6 +43,8 @@ class MapRunResult:
     wall_s: float
     mesh_s: float
     out_dir: Path | None
+    frame_indices: list[int] = dataclasses.field(default_factory=list)
+    """Capture index of each trajectory row (frames without a pose or depth are skipped)."""
 
     @property
     def fps(self) -> float:
@@ -85,7 +87,7 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     first = capture[0]
     mapper = make_mapper(config, has_color=first.color is not None)
     steps: list[MappingStep] = []
-    stamps, poses = [], []
+    stamps, poses, indices = [], [], []
     skipped = 0
     t0 = time.perf_counter()
     bar = tqdm(total=n, desc=f"map {capture.name}", unit="frame", disable=not progress, dynamic_ncols=True)
@@ -104,6 +106,7 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
         steps.append(mapper.integrate(data, frame.T_world_cam))
         stamps.append(frame.timestamp_s)
         poses.append(frame.T_world_cam)
+        indices.append(frame.index)
         elapsed = time.perf_counter() - t0
         bar.set_postfix(frame=frame.index, loss=f"{steps[-1].loss:.4f}", fps=f"{len(steps) / elapsed:.2f}",
                         kf=len(mapper.keyframes), vox=mapper.voxels.n_voxels, skipped=skipped)
@@ -117,20 +120,29 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     mesh = mapper.extract_mesh(config.mesh_res, config.mesh_support)
     mesh_s = time.perf_counter() - t1
     traj = Trajectory(np.asarray(stamps), np.stack(poses))
-    result = MapRunResult(mapper, config, mesh, traj, steps, wall, mesh_s, Path(out_dir) if out_dir else None)
+    result = MapRunResult(mapper, config, mesh, traj, steps, wall, mesh_s, Path(out_dir) if out_dir else None,
+                          indices)
     if out_dir is not None:
-        write_map_outputs(result)
+        write_map_outputs(result, capture)
     return result
 
 
-def write_map_outputs(result: MapRunResult) -> None:
-    """mesh.ply, voxels.npz, voxels.ply, checkpoint.pt, trajectory.txt, timings.json in ``result.out_dir``."""
+def write_map_outputs(result: MapRunResult, capture: Capture | None = None) -> None:
+    """mesh.ply (+ its ``.frame.json``), voxels.npz, voxels.ply, checkpoint.pt, trajectory.txt, timings.json in
+    ``result.out_dir``, and with ``capture`` the pictures ``view_frame.png`` / ``view_overview.png``."""
+    from .run import reference_world_axes, write_mesh_views  # run imports the engine; keep this module light
+
     out = result.out_dir
     if out is None:
         raise ValidationError("out_dir", "no output folder given")
     out.mkdir(parents=True, exist_ok=True)
     m = result.mapper
-    export_mesh(result.mesh, out / "mesh.ply")
+    axes = reference_world_axes(result.trajectory)
+    export_mesh(result.mesh, out / "mesh.ply", axes)
+    if capture is not None and result.frame_indices:
+        middle = len(result.frame_indices) // 2
+        write_mesh_views(out, {"voxfusion": result.mesh}, capture, result.frame_indices[middle],
+                         result.trajectory.T_world_cam[middle], axes.up_m)
     export_voxels(m.voxels, out / "voxels.npz", m.decoder)
     export_voxels(m.voxels, out / "voxels.ply")
     save_checkpoint(out / "checkpoint.pt", m, result.config, result.trajectory)

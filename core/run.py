@@ -30,13 +30,16 @@ from .eval.mesh import MeshEvalConfig, evaluate_mesh_against_gt, load_mesh, view
 from .eval.phantom import phantom_for_capture
 from .eval.report import write_json
 from .eval.trajectory import TrajectoryEvalConfig, compute_ate
-from .mesh import export_mesh
+from .geometry import invert_pose
+from .mesh import export_mesh, write_scene_views
+from .mesh.frame import WorldAxes, camera_up_forward
 from .slam import SlamStats, SlamSystem
 from .slam_config import VoxFusionConfig
 from .trajectory import Trajectory, write_tum_trajectory
 from .voxel_export import export_voxels
 
-__all__ = ["RunResult", "run_capture", "reference_trajectory", "evaluate_run", "evaluate_mesh", "evaluate_phantom",
+__all__ = ["write_mesh_views", "reference_world_axes", "RunResult", "run_capture", "reference_trajectory",
+           "evaluate_run", "evaluate_mesh", "evaluate_phantom",
            "peak_memory_mb"]
 
 
@@ -185,6 +188,25 @@ def run_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     return result
 
 
+def write_mesh_views(out_dir: Path, panels: dict[str, trimesh.Trimesh | None], capture: Capture,
+                     frame_index: int, T_world_cam: np.ndarray, up: tuple[float, float, float] | np.ndarray,
+                     prefix: str = "view") -> list[Path]:
+    """Pictures next to the meshes (:func:`.mesh.write_scene_views`): frame ``frame_index``'s input colour
+    image beside every mesh rendered at ``T_world_cam`` ``[4, 4]`` (that frame's pose in the meshes' world),
+    and an overview from above (``up`` in that world). Returns the paths (none when no mesh has a face)."""
+    frame = capture[frame_index]
+    h, w = frame.depth_m.shape
+    return write_scene_views(out_dir, panels, frame.K, T_world_cam, w, h, frame.color,
+                             tuple(np.asarray(up, dtype=float)), prefix)
+
+
+def reference_world_axes(trajectory: Trajectory) -> WorldAxes:
+    """:class:`.mesh.frame.WorldAxes` of a map built with reference poses (``voxfusion map``)."""
+    up, forward = camera_up_forward(trajectory.T_world_cam)
+    return WorldAxes("reference", tuple(up.tolist()), tuple(forward.tolist()),
+                     invert_pose(trajectory.T_world_cam[0]) if len(trajectory) else None)
+
+
 def _frame_rows(slam: SlamSystem) -> list[dict]:
     rows = []
     for r in slam.records:
@@ -229,7 +251,10 @@ def write_run_outputs(result: RunResult, capture: Capture, frames: int) -> None:
     write_json(out / "keyframes.json", [
         {"index": kf.data.index, "timestamp_s": kf.data.timestamp_s, "T_world_cam": kf.T_world_cam.cpu().numpy()}
         for kf in mapper.keyframes])
-    export_mesh(result.mesh, out / "mesh.ply")
+    axes = slam.world_axes()
+    export_mesh(result.mesh, out / "mesh.ply", axes)
+    middle = slam.records[len(slam.records) // 2]
+    write_mesh_views(out, {"voxfusion": result.mesh}, capture, middle.index, middle.T_world_cam, axes.up_m)
     export_voxels(mapper.voxels, out / "voxels.npz", mapper.decoder)
     export_voxels(mapper.voxels, out / "voxels.ply")
     save_checkpoint(out / "checkpoint.pt", mapper, slam.config, result.trajectory)

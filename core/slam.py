@@ -40,6 +40,7 @@ from .framedata import FrameData, frame_to_device
 from .geometry import invert_pose, nearest_rigid
 from .mapping import Keyframe, Mapper, MappingStep
 from .mesh import extract_map_mesh
+from .mesh.frame import WorldAxes, camera_up_forward
 from .render import RenderedImage, render_depth_image
 from .slam_config import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
@@ -128,6 +129,7 @@ class SlamSystem:
         self.on_pose = on_pose
         self.mapper: Mapper | None = None
         self.tracker: Tracker | None = None
+        self._world: str = "first_camera"  # what the world frame is, set with the first pose (world_axes)
         self.records: list[FrameRecord] = []
         self._snapshot: MapSnapshot | None = None
         self._mesh_cache: tuple[int, trimesh.Trimesh] | None = None
@@ -163,10 +165,28 @@ class SlamSystem:
     def _first_pose(self, frame: RGBDFrame) -> np.ndarray:
         choice = self.config.first_pose
         if choice == "reference" and frame.T_world_cam is not None:
+            self._world = "reference"
             return frame.T_world_cam.copy()
         if choice in ("reference", "device") and frame.T_world_cam_device is not None:
+            self._world = "device"
             return frame.T_world_cam_device.copy()
+        self._world = "first_camera"
         return np.eye(4)
+
+    def world_axes(self) -> WorldAxes:
+        """What the session's world frame is (reference, device or first camera), where "up" is in it and
+        the inverse of the first pose: what mesh files and their ``.frame.json`` sidecars need. Up is +y
+        in a device world (ARKit's gravity axis), else estimated from the cameras' orientations."""
+        with self._lock:
+            poses = np.stack([r.T_world_cam for r in self.records if not r.lost] or
+                             [r.T_world_cam for r in self.records[:1]] or [np.eye(4)])
+            first = self.records[0].T_world_cam if self.records else None
+        up, forward = camera_up_forward(poses)
+        world = self._world
+        if world == "device":
+            up = np.array([0.0, 1.0, 0.0])
+        return WorldAxes(world, tuple(up.tolist()), tuple(forward.tolist()),
+                         None if first is None else invert_pose(first))
 
     def _prior(self, frame: RGBDFrame) -> tuple[np.ndarray, bool]:
         """Prior pose from the last two frames that were not lost (however long ago), so a run of lost

@@ -300,6 +300,14 @@ class SessionManager:
         s = self._open_session(session_id)
         return s.mesh_bytes(fmt) if s is not None else self._stored_map(session_id).mesh_bytes(fmt)
 
+    def mesh_frame(self, session_id: str, fmt: str = "ply") -> dict:
+        """Which frame the mesh as ``fmt`` is in (the ``.frame.json`` sidecar object)."""
+        if fmt not in MESH_FORMATS:
+            raise ValidationError("format", f"unknown mesh format {fmt!r}; use one of {', '.join(MESH_FORMATS)}")
+        self.get(session_id)
+        s = self._open_session(session_id)
+        return s.mesh_frame(fmt) if s is not None else self._stored_map(session_id).mesh_frame(fmt)
+
     def voxels_bytes(self, session_id: str, fmt: str = "npz") -> tuple[bytes, int]:
         if fmt not in VOXEL_FORMATS:
             raise ValidationError("format", f"unknown voxel format {fmt!r}; use one of {', '.join(VOXEL_FORMATS)}")

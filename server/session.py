@@ -38,6 +38,7 @@ import numpy as np
 from voxfusion.core.checkpoint import atomic_write_bytes, save_checkpoint
 from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.mesh import mesh_bytes
+from voxfusion.core.mesh.frame import sidecar_path
 from voxfusion.core.render import RenderedImage, render_depth_image
 from voxfusion.core.slam import FrameRecord, SlamError, SlamSystem
 from voxfusion.core.slam_config import VoxFusionConfig
@@ -358,8 +359,12 @@ class Session:
             if key not in self._mesh_cache:
                 mesh = self.slam.mesh()
                 self._mesh_cache = {k: v for k, v in self._mesh_cache.items() if k[0] == snap.version}
-                self._mesh_cache[key] = mesh_bytes(mesh, fmt)
+                self._mesh_cache[key] = mesh_bytes(mesh, fmt, self.slam.world_axes())
             return self._mesh_cache[key], snap.version
+
+    def mesh_frame(self, fmt: str) -> dict:
+        """The ``.frame.json`` sidecar of the mesh as ``fmt``: which frame its coordinates are in."""
+        return self.slam.world_axes().sidecar(f"mesh.{fmt}", fmt)
 
     def voxels_bytes(self, fmt: str) -> tuple[bytes, int]:
         snap = self.slam.snapshot
@@ -396,6 +401,8 @@ class Session:
                     self.write_checkpoint(from_snapshot=False)
                     mesh = self.slam.mesh()
                     atomic_write_bytes(self.folder / MESH_FILE, mesh_bytes(mesh, "ply"))
+                    atomic_write_bytes(sidecar_path(self.folder / MESH_FILE), json.dumps(
+                        self.slam.world_axes().sidecar(MESH_FILE, "ply"), indent=2).encode())
                     write_tum_trajectory(self.folder / TRAJECTORY_FILE, self.slam.trajectory())
             except Exception as e:  # noqa: BLE001 - fails this session only
                 self.mark_failed(e)

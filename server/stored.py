@@ -25,6 +25,7 @@ import trimesh
 
 from voxfusion.core.checkpoint import LoadedCheckpoint, load_checkpoint
 from voxfusion.core.mesh import mesh_bytes
+from voxfusion.core.mesh.frame import WorldAxes, read_mesh_frame
 from voxfusion.core.render import RenderedImage, render_depth_image
 from voxfusion.core.voxel_export import voxels_npz_bytes, voxels_ply_bytes
 from voxfusion.proto.schemas import PoseOut, RenderRequest
@@ -102,10 +103,20 @@ class StoredMap:
             else:
                 mesh = (trimesh.load(mesh_file, file_type="ply", process=False) if fresh
                         else ckpt.mapper.extract_mesh(ckpt.config.mesh_res, ckpt.config.mesh_support))
-                data = mesh_bytes(mesh, fmt)
+                data = mesh_bytes(mesh, fmt, self.world_axes())
             self._mesh_cache = {k: v for k, v in self._mesh_cache.items() if k[0] == version}
             self._mesh_cache[(version, fmt)] = data
         return data, version
+
+    def world_axes(self) -> WorldAxes:
+        """The session's world axes, from the mesh sidecar written when it finished (a first-camera world
+        held upright when there is none)."""
+        frame = read_mesh_frame(self.folder / MESH_FILE)
+        return WorldAxes.from_sidecar(frame.raw)
+
+    def mesh_frame(self, fmt: str) -> dict:
+        """The ``.frame.json`` sidecar of the mesh as ``fmt``."""
+        return self.world_axes().sidecar(f"mesh.{fmt}", fmt)
 
     def voxels_bytes(self, fmt: str) -> tuple[bytes, int]:
         ckpt = self._checkpoint()

@@ -15,9 +15,10 @@ from .view import (
     save_png,
     side_by_side,
     write_mesh_pictures,
+    write_scene_views,
 )
 
 __all__ = ["extract_mesh", "extract_map_mesh", "coarse_res_for", "SurfaceSupport", "QueryFn", "KeepFn",
            "GREY_RGB", "export_mesh", "mesh_bytes", "MESH_FORMATS", "MeshFormat", "ViewImage", "LIGHT_GREY_RGB",
            "intrinsics_from_fov", "look_at", "overview_pose", "render_mesh", "side_by_side", "save_png",
-           "write_mesh_pictures"]
+           "write_mesh_pictures", "write_scene_views"]

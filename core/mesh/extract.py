@@ -61,6 +61,7 @@ GREY_RGB = (128, 128, 128)
 
 _AXIS_BITS = 20  # bits per axis of a packed lattice-point key (3 * 20 bits, times 3 edge axes, fits int64)
 _T_MARGIN = 1e-3  # a vertex stays this fraction of an edge away from its ends (no coincident vertices)
+_NEAR_RATIO = 0.6  # coarse cells with a corner |sdf| <= this times their diagonal are meshed finely
 _NUDGE = 1e-5  # queries on voxel faces move this fraction of a lattice step into their voxel (see _inside)
 
 
@@ -73,6 +74,7 @@ def extract_mesh(
     device: torch.device | str | None = None,
     coarse_res: int | None = None,
     keep_fn: KeepFn | None = None,
+    lattice_query_fn: QueryFn | None = None,
 ) -> trimesh.Trimesh:
     """Extract the zero level set of ``query_fn`` inside the allocated voxels.
 
@@ -95,6 +97,8 @@ def extract_mesh(
             resolution. ``mesh_res`` must be a multiple of ``coarse_res``.
         keep_fn: optional face filter ``centroids_world [F, 3] float64 m -> keep [F] bool`` (e.g. the
             observation support, :class:`.support.SurfaceSupport`); dropped faces' unused vertices go too.
+        lattice_query_fn: the query used at the lattice samples, whose colour is never used (e.g. one that
+            skips the colour head); default ``query_fn``. Must return the same SDF as ``query_fn``.
 
     Returns:
         A ``trimesh.Trimesh`` (not processed: vertices are exactly the welded edge vertices; each sits at
@@ -123,6 +127,7 @@ def extract_mesh(
     if isinstance(chunk_points, bool) or not isinstance(chunk_points, numbers.Integral) or chunk_points < 1:
         raise ValidationError("chunk_points", f"must be an integer >= 1, got {chunk_points!r}")
     coarse = coarse_res_for(int(mesh_res)) if coarse_res is None else int(coarse_res)
+    sdf_fn = query_fn if lattice_query_fn is None else lattice_query_fn
     if coarse < 0 or (coarse and int(mesh_res) % coarse):
         raise ValidationError("coarse_res", f"must divide mesh_res={mesh_res} (or be 0), got {coarse_res!r}")
     if len(coords) == 0:
@@ -136,7 +141,7 @@ def extract_mesh(
             f"{2**_AXIS_BITS - 1} (lower mesh_res or extract in parts)")
     step_m = float(voxel_size_m) / R
     if 0 < coarse < R:  # cells of the coarse lattice that can hold the surface, as "voxels" of size v/coarse
-        coords = _near_surface_cells(coords, coarse, float(voxel_size_m) / coarse, query_fn, chunk_points)
+        coords = _near_surface_cells(coords, coarse, float(voxel_size_m) / coarse, sdf_fn, chunk_points)
         R = R // coarse
         if len(coords) == 0:
             return _empty_mesh()
@@ -150,7 +155,7 @@ def extract_mesh(
     keys, positions, cells = [], [], []
     for start in range(0, len(coords), per_chunk):
         sdf, valid, sample_index = _sample_lattice(coords[start:start + per_chunk], all_cells, step_m,
-                                                   query_fn, chunk_points, origin)
+                                                   sdf_fn, chunk_points, origin)
         k, p, c = _march(coords[start:start + per_chunk], sdf[sample_index], valid[sample_index], R, origin,
                          table)
         keys.append(k)
@@ -197,14 +202,14 @@ class _Cells:
     def __init__(self, coords: torch.Tensor, R: int) -> None:
         self.R = R
         self.lo = coords.min(dim=0).values - 1
-        self.keys = _pack(coords - self.lo)  # sorted, as coords are sorted lexicographically
+        self.keys = torch.sort(_pack(coords - self.lo)).values  # sorts as coords do (lexicographically)
 
     def owners(self, lattice: torch.Tensor) -> torch.Tensor:
         """``[S, 3]`` int64 owner cell of each lattice point ``[S, 3]`` (each lies in at least one cell)."""
         base = torch.div(lattice, self.R, rounding_mode="floor")
         on_face = torch.remainder(lattice, self.R) == 0
-        owner = torch.full_like(base, -1)
-        found = torch.zeros(len(base), dtype=torch.bool, device=base.device)
+        owner = base.clone()  # a point inside a cell's interior belongs to that cell
+        found = ~on_face.any(dim=1)
         for d in ((1, 1, 1), (1, 1, 0), (1, 0, 1), (1, 0, 0), (0, 1, 1), (0, 1, 0), (0, 0, 1), (0, 0, 0)):
             delta = torch.tensor(d, device=base.device)
             allowed = (on_face | (delta == 0)).all(dim=1) & ~found
@@ -249,12 +254,14 @@ def _near_surface_cells(coords: torch.Tensor, c: int, cell_m: float, query_fn: Q
                         chunk_points: int) -> torch.Tensor:
     """Coarse cells (``[C, 3]`` int64 in units of ``cell_m``, ``c`` per voxel edge) of voxels ``coords``
     that may hold the zero level set: a sign change between valid corners, or a valid corner with
-    ``|sdf| <=`` the cell diagonal (a surface inside the cell is that close to every corner of it)."""
+    ``|sdf| <= 0.6 *`` the cell diagonal (any point of a cube is within half its diagonal of some
+    corner, so a surface inside the cell is that close to a corner of an exact SDF; the margin covers a
+    learned field that is not exactly one)."""
     origin = coords.min(dim=0).values * c
     all_cells = _Cells(coords, c)
     n1 = c + 1
     per_chunk = max(1, chunk_points // n1**3)
-    diagonal = float(np.sqrt(3.0) * cell_m)
+    diagonal = float(np.sqrt(3.0) * cell_m) * _NEAR_RATIO
     out = []
     for start in range(0, len(coords), per_chunk):
         part = coords[start:start + per_chunk]
@@ -272,7 +279,7 @@ def _near_surface_cells(coords: torch.Tensor, c: int, cell_m: float, query_fn: Q
         near |= neg & pos
         v, x, y, z = near.nonzero(as_tuple=True)
         out.append(part[v] * c + torch.stack([x, y, z], 1))
-    return torch.cat(out)
+    return torch.unique(torch.cat(out), dim=0)  # sorted (lexicographically), as the fine pass expects
 
 
 def _filter_faces(faces: torch.Tensor, vertices: torch.Tensor, cell_centre: torch.Tensor, step_m: float,

@@ -32,10 +32,12 @@ def extract_map_mesh(voxel_map: VoxelMap, decoder: SDFDecoder, mesh_res: int, su
 
     Returns the mesh in the map's world frame (metres); see :func:`.extract.extract_mesh`.
     """
-    def field_query(points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    def field_query(points: torch.Tensor, with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor | None,
+                                                                           torch.Tensor]:
         with torch.no_grad():
-            return query(voxel_map, decoder, points.to(voxel_map.device))
+            return query(voxel_map, decoder, points.to(voxel_map.device), with_color=with_color)
 
     keep = SurfaceSupport.from_map(voxel_map, support_dilate) if support else None
     return extract_mesh(voxel_map.active_voxel_coords, voxel_map.voxel_size_m, field_query,
-                        mesh_res=mesh_res, device=voxel_map.device, keep_fn=keep)
+                        mesh_res=mesh_res, device=voxel_map.device, keep_fn=keep,
+                        lattice_query_fn=lambda p: field_query(p, with_color=False))

@@ -42,6 +42,7 @@ __all__ = [
     "side_by_side",
     "save_png",
     "write_mesh_pictures",
+    "write_scene_views",
 ]
 
 LIGHT_GREY_RGB = (215, 215, 215)
@@ -319,6 +320,28 @@ def write_mesh_pictures(out_dir: str | Path, panels: Mapping[str, trimesh.Trimes
         images.append(render_mesh(mesh, K, T_world_cam, width, height, cull_back_faces=cull_back_faces).rgb)
         labels.append(label)
     return save_png(Path(out_dir) / name, side_by_side(images, labels))
+
+
+def write_scene_views(out_dir: str | Path, panels: Mapping[str, trimesh.Trimesh], K: np.ndarray,
+                      T_world_cam: np.ndarray, width: int, height: int, input_rgb: np.ndarray | None,
+                      up: Sequence[float], prefix: str = "view") -> list[Path]:
+    """The two pictures written next to meshes by ``voxfusion run`` / ``map`` and ``bench/run.py``.
+
+    ``<prefix>_frame.png``: the input frame beside every mesh rendered at that frame's camera (``K``,
+    ``T_world_cam``, ``width`` x ``height``); ``<prefix>_overview.png``: every mesh from one oblique camera
+    above framing the first mesh (:func:`overview_pose` with ``up``), back faces hidden so a room shows its inside. Empty meshes are
+    skipped; returns the paths written (none when no mesh has a face).
+    """
+    panels = {k: m for k, m in panels.items() if m is not None and len(m.faces)}
+    if not panels:
+        return []
+    frame = write_mesh_pictures(out_dir, panels, K, T_world_cam, width, height, input_rgb,
+                                name=f"{prefix}_frame.png")
+    Ko = intrinsics_from_fov(640, 480, 60.0)
+    To = overview_pose(next(iter(panels.values())), Ko, 640, 480, up=up)  # framed on the first mesh
+    overview = write_mesh_pictures(out_dir, panels, Ko, To, 640, 480, name=f"{prefix}_overview.png",
+                                   cull_back_faces=True)
+    return [frame, overview]
 
 
 # --- internals -----------------------------------------------------------------------------------------

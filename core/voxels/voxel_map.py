@@ -551,6 +551,11 @@ class VoxelMap:
         self._voxel_surface = flat.view(-1, _SURFACE_BYTES)
         return int(_popcount8(new).sum() - _popcount8(old).sum())
 
+    def surface_cell_counts(self) -> torch.Tensor:
+        """``[M]`` int64: observed surface cells per voxel (0..512)."""
+        lut = _POPCOUNT8.to(self.device)
+        return lut[self._voxel_surface.long()].sum(dim=1)
+
     def surface_cells(self, active_only: bool = True) -> torch.Tensor:
         """``[K, 3]`` int64 global coordinates of the observed surface cells.
 
@@ -735,7 +740,9 @@ class VoxelMap:
                 f"n_vertices={self.n_vertices}, embed_dim={self.embed_dim}, device={self.device})")
 
 
+_POPCOUNT8 = torch.tensor([bin(i).count("1") for i in range(256)], dtype=torch.int64)
+
+
 def _popcount8(x: torch.Tensor) -> torch.Tensor:
     """Set bits of each uint8 ``[N]`` as int64 ``[N]``."""
-    x = x.to(torch.int64)
-    return sum((x >> b) & 1 for b in range(8))
+    return _POPCOUNT8.to(x.device)[x.long()]

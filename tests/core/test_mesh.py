@@ -332,3 +332,24 @@ def test_unknown_or_impossible_exports_raise(sphere_mesh, tmp_path):
     with pytest.raises(ValidationError, match="mesh"):
         mesh_bytes(empty, "glb")
     assert mesh_bytes(empty, "ply").startswith(b"ply\n")
+
+
+def test_two_level_extraction_matches_one_level_on_a_shuffled_irregular_map():
+    """The coarse pass's near-surface cells feed the fine pass in any order; the mesh must equal the
+    one-level mesh (regression: unsorted cells once lost a tenth of a room's faces)."""
+    centre = torch.tensor([0.013, -0.021, 0.037])
+
+    def field(p):  # a tilted plane 3 mm off the voxel borders, and a small sphere
+        plane = (p.double() @ torch.tensor([0.05, -0.03, 1.0]).double()) / 1.0017 - 0.003
+        ball = (p.double() - centre.double() - 0.3).norm(dim=1) - 0.12
+        return torch.minimum(plane, ball).float(), None, torch.ones(len(p), dtype=torch.bool)
+
+    ijk = box_voxels(-3, 4)
+    keep = torch.from_numpy(np.random.default_rng(0).random(len(ijk)) < 0.8)
+    ijk = ijk[keep][torch.randperm(int(keep.sum()), generator=torch.Generator().manual_seed(1))]
+    one = extract_mesh(ijk, VOXEL_M, field, mesh_res=20, coarse_res=0)
+    two = extract_mesh(ijk, VOXEL_M, field, mesh_res=20, chunk_points=5000)
+    assert len(one.faces) > 10000
+    assert len(two.faces) == len(one.faces)
+    _, nearest = cKDTree(one.triangles_center).query(two.triangles_center)
+    assert np.abs(one.triangles[nearest] - two.triangles).max() < 5e-5

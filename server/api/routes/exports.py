@@ -32,8 +32,22 @@ def get_mesh(session_id: SessionIdDep, manager: ManagerDep, request: Request,
              format: Annotated[Literal["ply", "glb", "obj"], Query(description="ply, glb or obj")] = "ply") -> Response:
     """The mesh of the newest map with vertex colours (PLY binary, GLB, or OBJ); ``ETag`` per map version."""
     data, version = manager.mesh_bytes(session_id, format)
-    return _file_response(request, data, version, MESH_MEDIA_TYPES[format],
-                          f"voxfusion-{session_id[:8]}-v{version}.{format}")
+    response = _file_response(request, data, version, MESH_MEDIA_TYPES[format],
+                              f"voxfusion-{session_id[:8]}-v{version}.{format}")
+    frame = manager.mesh_frame(session_id, format)
+    response.headers["X-Mesh-World"] = frame["world"]
+    response.headers["Link"] = f'</sessions/{session_id}/mesh/frame?format={format}>; rel="describedby"'
+    return response
+
+
+@router.get("/sessions/{session_id}/mesh/frame")
+def get_mesh_frame(session_id: SessionIdDep, manager: ManagerDep,
+                   format: Annotated[Literal["ply", "glb", "obj"],
+                                     Query(description="ply, glb or obj")] = "ply") -> dict:
+    """Which frame ``/mesh?format=...`` is in (the same object as a file export's ``.frame.json``):
+    ``T_world_file`` (file coordinates -> the session's world; a GLB is Y-up), ``world`` (``reference``,
+    ``device`` or ``first_camera``) and ``T_first_camera_world`` (world -> the first camera's frame)."""
+    return manager.mesh_frame(session_id, format)
 
 
 @router.get("/sessions/{session_id}/voxels", response_class=Response,
