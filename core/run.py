@@ -254,7 +254,7 @@ def write_run_outputs(result: RunResult, capture: Capture, frames: int) -> None:
     axes = slam.world_axes()
     export_mesh(result.mesh, out / "mesh.ply", axes)
     middle = slam.records[len(slam.records) // 2]
-    write_mesh_views(out, {"voxfusion": result.mesh}, capture, middle.index, middle.T_world_cam, axes.up_m)
+    write_mesh_views(out, {"voxfusion": result.mesh}, capture, middle.index, middle.current_pose(), axes.up_m)
     export_voxels(mapper.voxels, out / "voxels.npz", mapper.decoder)
     export_voxels(mapper.voxels, out / "voxels.ply")
     save_checkpoint(out / "checkpoint.pt", mapper, slam.config, result.trajectory)

@@ -178,9 +178,9 @@ class SlamSystem:
         the inverse of the first pose: what mesh files and their ``.frame.json`` sidecars need. Up is +y
         in a device world (ARKit's gravity axis), else estimated from the cameras' orientations."""
         with self._lock:
-            poses = np.stack([r.T_world_cam for r in self.records if not r.lost] or
-                             [r.T_world_cam for r in self.records[:1]] or [np.eye(4)])
-            first = self.records[0].T_world_cam if self.records else None
+            poses = np.stack([r.current_pose() for r in self.records if not r.lost] or
+                             [r.current_pose() for r in self.records[:1]] or [np.eye(4)])
+            first = self.records[0].current_pose() if self.records else None
         up, forward = camera_up_forward(poses)
         world = self._world
         if world == "device":

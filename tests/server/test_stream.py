@@ -168,6 +168,18 @@ def test_mesh_downloads_with_a_plain_get(streamed):
         assert len(trimesh.load(io.BytesIO(r.content), file_type=fmt, force="mesh").vertices) > 100
     bad = api.http.get(f"/sessions/{sid}/mesh", params={"format": "stl"}, headers=api.auth(token))
     assert bad.status_code == 422 and bad.json()["field"] == "format"
+    # which frame each export is in: the sidecar object, and a GLB that is the PLY turned Y-up by it
+    frames = {fmt: api.http.get(f"/sessions/{sid}/mesh/frame", params={"format": fmt}, headers=api.auth(token))
+              for fmt in ("ply", "glb")}
+    assert all(r.status_code == 200 for r in frames.values())
+    assert frames["ply"].json()["T_world_file"] == np.eye(4).tolist()
+    T_world_glb = np.asarray(frames["glb"].json()["T_world_file"])
+    assert frames["glb"].json()["file_axes"] == "gltf_y_up" and not np.allclose(T_world_glb, np.eye(4))
+    assert frames["glb"].json()["world"] in ("reference", "device", "first_camera")
+    glb = trimesh.load(io.BytesIO(api.http.get(f"/sessions/{sid}/mesh", params={"format": "glb"},
+                                               headers=api.auth(token)).content), file_type="glb", force="mesh")
+    back = glb.vertices @ T_world_glb[:3, :3].T + T_world_glb[:3, 3]
+    np.testing.assert_allclose(np.sort(back, axis=0), np.sort(mesh.vertices, axis=0), atol=1e-4)
 
 
 def test_voxels_download(streamed):
@@ -215,6 +227,9 @@ def test_finish_then_outputs_come_from_disk(streamed):
     # outputs are served from the checkpoint / files now
     mesh = api.http.get(f"/sessions/{sid}/mesh", headers=api.auth(token))
     assert mesh.status_code == 200 and mesh.content == (folder / "mesh.ply").read_bytes()
+    sidecar = json.loads((folder / "mesh.ply.frame.json").read_text())
+    stored = api.http.get(f"/sessions/{sid}/mesh/frame", params={"format": "glb"}, headers=api.auth(token)).json()
+    assert stored["world"] == sidecar["world"] and stored["up"] == sidecar["up"]
     poses = api.http.get(f"/sessions/{sid}/poses", headers=api.auth(token)).json()["poses"]
     assert len(poses) == N_FRAMES
     frame = scene.capture[4]

@@ -1,0 +1,101 @@
+"""Observation support for meshes (voxfusion.core.mesh.support), the surface mask it reads, the evidence rule
+that uses it, and the frame sidecar / Y-up GLB of mesh exports."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import torch
+import trimesh
+
+from voxfusion.core.eval import read_mesh_frame
+from voxfusion.core.evidence import EvidenceConfig, evidence_active
+from voxfusion.core.mesh import SurfaceSupport, export_mesh, extract_mesh, mesh_bytes
+from voxfusion.core.mesh.frame import T_GLTF_WORLD, WorldAxes, camera_up_forward, gltf_from_world
+from voxfusion.core.voxels import SURFACE_CELLS, VoxelMap
+
+VOXEL_M = 0.2
+
+
+def sphere(points: torch.Tensor):
+    sdf = (points.double() - torch.tensor([0.013, -0.021, 0.037])).norm(dim=1) - 0.5
+    return sdf.float(), None, torch.ones(len(points), dtype=torch.bool)
+
+
+def test_surface_mask_marks_cells_counts_and_survives_a_checkpoint():
+    vmap = VoxelMap(VOXEL_M, seed=0)
+    pts = torch.tensor([[0.01, 0.01, 1.01], [0.012, 0.011, 1.012], [0.19, 0.19, 1.19], [0.3, 0.1, 1.0]])
+    vmap.allocate(pts)
+    assert vmap.add_surface_points(pts) == 3  # the first two share a 2.5 cm cell
+    assert vmap.add_surface_points(pts) == 0
+    cell = VOXEL_M / SURFACE_CELLS
+    expected = {tuple(c) for c in np.floor(pts.numpy() / cell).astype(int).tolist()}
+    assert {tuple(c) for c in vmap.surface_cells().tolist()} == expected
+    assert sorted(vmap.surface_cell_counts().tolist()) == [1, 2]
+    back = VoxelMap.from_state_dict(vmap.state_dict())
+    assert back.has_surface_evidence and torch.equal(back.voxel_surface, vmap.voxel_surface)
+    old = vmap.state_dict()
+    del old["voxel_surface"]
+    legacy = VoxelMap.from_state_dict(old)
+    assert not legacy.has_surface_evidence and SurfaceSupport.from_map(legacy) is None
+
+
+def test_support_keeps_only_faces_near_observed_points():
+    ijk = torch.cartesian_prod(*[torch.arange(-4, 4)] * 3)
+    full = extract_mesh(ijk, VOXEL_M, sphere, mesh_res=8)
+    # "observe" the upper half of the sphere only (points exactly on it, z > centre)
+    seen = full.vertices[full.vertices[:, 2] > 0.037 + 0.1]
+    support = SurfaceSupport(torch.from_numpy(np.floor(seen / (VOXEL_M / SURFACE_CELLS))).long(),
+                             VOXEL_M / SURFACE_CELLS)
+    kept = extract_mesh(ijk, VOXEL_M, sphere, mesh_res=8, keep_fn=support)
+    assert 0.2 * len(full.faces) < len(kept.faces) < 0.6 * len(full.faces)
+    centres = kept.triangles_center
+    assert centres[:, 2].min() > 0.037 + 0.1 - 2 * 2 * VOXEL_M / SURFACE_CELLS  # at most ~2 cells below
+    assert len(np.unique(kept.faces)) == len(kept.vertices)  # no unused vertices left behind
+    nothing = extract_mesh(ijk, VOXEL_M, sphere, mesh_res=8, keep_fn=SurfaceSupport(
+        torch.zeros(0, 3, dtype=torch.long), 0.025))
+    assert len(nothing.faces) == 0
+
+
+def test_evidence_keeps_an_extended_sliver_but_not_isolated_points():
+    config = EvidenceConfig()
+    hits = torch.tensor([80.0, 3.0, 80.0])
+    free = torch.tensor([10000.0, 10000.0, 10.0])  # ratio < 1 % for the first two
+    cells = torch.tensor([40, 2, 1])
+    active = evidence_active(hits, free, config, cells)
+    assert active.tolist() == [True, False, True]
+    assert evidence_active(hits, free, config).tolist() == [False, False, True]  # ratio alone
+
+
+def test_glb_is_y_up_and_every_export_has_a_sidecar(tmp_path):
+    # a first-camera world (OpenCV: y down): a point above the camera has negative y
+    mesh = trimesh.Trimesh(vertices=[[0.0, -1.0, 2.0], [1.0, -1.0, 2.0], [0.0, -1.0, 3.0]], faces=[[0, 1, 2]],
+                           process=False)
+    axes = WorldAxes("first_camera", T_first_camera_world=np.eye(4))
+    assert np.allclose(axes.T_file_world("glb"), T_GLTF_WORLD) and np.allclose(axes.T_file_world("ply"), np.eye(4))
+    glb = trimesh.load(io.BytesIO(mesh_bytes(mesh, "glb", axes)), file_type="glb", force="mesh")
+    assert (glb.vertices[:, 1] > 0.9).all()  # above the camera is +Y in glTF
+    assert (glb.vertices[:, 2] < -1.9).all()  # in front of the first camera is -Z
+    for name in ("mesh.glb", "mesh.ply"):
+        path = export_mesh(mesh, tmp_path / name, axes)
+        frame = read_mesh_frame(path)
+        assert frame.world == "first_camera"
+        loaded = trimesh.load(path, force="mesh", process=False)
+        back = loaded.vertices @ frame.T_world_file[:3, :3].T + frame.T_world_file[:3, 3]
+        np.testing.assert_allclose(np.sort(back, axis=0), np.sort(mesh.vertices, axis=0), atol=1e-6)
+        rebuilt = WorldAxes.from_sidecar(json.loads((tmp_path / f"{name}.frame.json").read_text()))
+        assert rebuilt.world == axes.world and rebuilt.up_m == axes.up_m and rebuilt.forward_m == axes.forward_m
+
+
+def test_up_is_estimated_from_camera_orientations():
+    T = np.tile(np.eye(4), (5, 1, 1))
+    T[:, :3, :3] = np.array([[1, 0, 0], [0, 0, 1], [0, -1, 0]])  # cameras looking along +y, image up = +z
+    up, forward = camera_up_forward(T)
+    np.testing.assert_allclose(up, [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(forward, [0, 1, 0], atol=1e-12)
+    R = gltf_from_world(up, forward)[:3, :3]
+    np.testing.assert_allclose(R @ up, [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(R @ forward, [0, 0, -1], atol=1e-12)
+    assert np.isclose(np.linalg.det(R), 1.0)
