@@ -23,7 +23,7 @@ counters are comparable whatever the sampling strides:
 The decision (:func:`evidence_active`): a voxel is **inactive** once it has at least ``min_free_px`` of
 free-space evidence and its hits are less than ``min_hit_ratio`` of all its evidence,
 ``hits < min_hit_ratio * (hits + free)``, i.e. fewer than 1 % of the rays that reached the voxel ended on
-a surface inside it, and its depth points fell in fewer than ``min_surface_cells`` of its 2.5 cm surface
+a surface inside it, and its depth points fell in fewer than ``min_surface_cells`` of its 1.25 cm surface
 cells (isolated points, not an extended surface: see that option).
 
 The ratio was measured on the first frame of each dev capture and the synthetic room with 2 % random
@@ -92,11 +92,12 @@ class EvidenceConfig:
     """...and it has at least this much free-space evidence (pixel-equivalents), so a voxel is never
     judged on a handful of rays."""
     min_surface_cells: int = 12
-    """...and fewer than this many of its 512 surface cells (2.5 cm at 0.2 m voxels,
+    """...and fewer than this many of its 4096 surface cells (1.25 cm at 0.2 m voxels,
     :meth:`~.voxels.VoxelMap.add_surface_points`) ever held a depth point. A real surface is extended: even
-    a sliver of floor grazing a voxel's border fills dozens of cells (14-64 measured on the synthetic room,
-    where a floor 2 mm above a voxel border made 40 such slivers that the ratio alone masked, cutting mesh
-    completion to 91 %), while the isolated outliers this rule is for fill one to a few (1-9 measured)."""
+    a sliver of floor grazing a voxel's border fills dozens of cells (14-64 measured with 2.5 cm cells on the
+    synthetic room, where a floor 2 mm above a voxel border made 40 such slivers that the ratio alone masked,
+    cutting mesh completion to 91 %; about four times as many with 1.25 cm cells), while the isolated
+    outliers this rule is for fill one cell each (1-9 measured)."""
 
     def __post_init__(self) -> None:
         if self.free_rays < 1:

@@ -35,6 +35,7 @@ from .framedata import FrameData, sample_pixels
 from .lie import perturb_right
 from .losses import LossConfig, LossTerms, compute_losses
 from .mesh import extract_map_mesh
+from .mesh.colors import ColorView
 from .optim import adam
 from .render import RenderConfig, camera_rays, render_rays
 from .voxels import VoxelMap
@@ -317,7 +318,15 @@ class Mapper:
         with torch.no_grad():
             return query(self.voxels, self.decoder, points_world.to(self.device))
 
-    def extract_mesh(self, mesh_res: int = 20, support: bool = True):  # noqa: ANN201 - trimesh.Trimesh
+    def color_views(self) -> list[ColorView]:
+        """The keyframes' colour images at their current poses (none for depth-only maps)."""
+        return [ColorView(kf.data.color, kf.data.depth_m, kf.data.K, kf.T_world_cam.clone())
+                for kf in list(self.keyframes) if kf.data.color is not None]
+
+    def extract_mesh(self, mesh_res: int = 20, support: bool = True,  # noqa: ANN201 - trimesh.Trimesh
+                     colors: str = "images"):
         """Triangle mesh of the zero level set inside active voxels where observations support it, with
-        vertex colours (:func:`.mesh.extract_map_mesh`)."""
-        return extract_map_mesh(self.voxels, self.decoder, mesh_res, support)
+        vertex colours from the keyframe images (``colors="images"``) or the colour head (``"field"``)
+        (:func:`.mesh.extract_map_mesh`)."""
+        views = self.color_views() if colors == "images" else None
+        return extract_map_mesh(self.voxels, self.decoder, mesh_res, support, color_views=views)

@@ -117,7 +117,7 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     mapper.finish()
     wall = time.perf_counter() - t0
     t1 = time.perf_counter()
-    mesh = mapper.extract_mesh(config.mesh_res, config.mesh_support)
+    mesh = mapper.extract_mesh(config.mesh_res, config.mesh_support, config.mesh_colors)
     mesh_s = time.perf_counter() - t1
     traj = Trajectory(np.asarray(stamps), np.stack(poses))
     result = MapRunResult(mapper, config, mesh, traj, steps, wall, mesh_s, Path(out_dir) if out_dir else None,

@@ -28,6 +28,7 @@ from .errors import ValidationError, VoxFusionError
 from .eval.consistency import depth_consistency
 from .eval.mesh import MeshEvalConfig, evaluate_mesh_against_gt, load_mesh, views_from_capture
 from .eval.phantom import phantom_for_capture
+from .eval.photometric import photometric_check
 from .eval.report import write_json
 from .eval.trajectory import TrajectoryEvalConfig, compute_ate
 from .geometry import invert_pose
@@ -92,7 +93,28 @@ def evaluate_run(trajectory: Trajectory, mesh: trimesh.Trimesh, capture: Capture
     metrics.update(evaluate_mesh(mesh, capture, frames, mesh_samples))
     metrics.update(evaluate_phantom(mesh, capture, frames, trajectory if tracked is None else tracked,
                                     mesh_samples, max_diff_s=1e-3))
+    photometric = evaluate_photometric(mesh, capture, frames, trajectory)
+    if photometric is not None:
+        metrics["photometric"] = photometric
     return metrics
+
+
+def evaluate_photometric(mesh: trimesh.Trimesh, capture: Capture, frames: int, trajectory: Trajectory,
+                         n_views: int = 5) -> dict | None:
+    """The mesh's vertex colours against ``n_views`` input frames (:mod:`.eval.photometric`), placed with
+    the estimated poses; frames halfway between the keyframe-interval marks (``i = 5 + 10 k``) so they are
+    usually not keyframes, whose images colour the mesh. None for depth-only captures or an empty mesh."""
+    if len(mesh.faces) == 0 or len(trajectory) != frames:
+        return None
+    picks = np.unique(np.linspace(0, max(0, (frames - 6) // 10), n_views).round().astype(int) * 10 + 5)
+    picks = [int(i) for i in picks if i < frames] or [frames // 2]
+    views = []
+    for i in picks:
+        f = capture[i]
+        if f.color is None:
+            return None
+        views.append((f.color, f.depth_m, f.K, trajectory.T_world_cam[i]))
+    return dataclasses.asdict(photometric_check(mesh, views)) | {"frames": picks}
 
 
 def compare_depth_consistency(capture: Capture, estimate: Trajectory, reference: Trajectory) -> dict:

@@ -40,6 +40,7 @@ from .framedata import FrameData, frame_to_device
 from .geometry import invert_pose, nearest_rigid
 from .mapping import Keyframe, Mapper, MappingStep
 from .mesh import extract_map_mesh
+from .mesh.colors import ColorView
 from .mesh.frame import WorldAxes, camera_up_forward
 from .render import RenderedImage, render_depth_image
 from .slam_config import VoxFusionConfig, resolve_device
@@ -109,6 +110,8 @@ class MapSnapshot:
     voxels: VoxelMap
     decoder: SDFDecoder
     version: int
+    color_views: tuple[ColorView, ...] = ()
+    """The keyframes' colour images at their poses when the snapshot was taken (mesh colours)."""
 
 
 class SlamSystem:
@@ -219,7 +222,7 @@ class SlamSystem:
         decoder = copy.deepcopy(m.decoder).requires_grad_(False)
         if stream is not None:
             stream.synchronize()
-        snap = MapSnapshot(voxels, decoder, m.version)
+        snap = MapSnapshot(voxels, decoder, m.version, tuple(m.color_views()))
         with self._lock:
             self._snapshot = snap
         if self.tracker is not None:
@@ -475,6 +478,8 @@ class SlamSystem:
         if cached is not None and cached[0] == snap.version:
             return cached[1]
 
-        mesh = extract_map_mesh(snap.voxels, snap.decoder, self.config.mesh_res, self.config.mesh_support)
+        views = list(snap.color_views) if self.config.mesh_colors == "images" else None
+        mesh = extract_map_mesh(snap.voxels, snap.decoder, self.config.mesh_res, self.config.mesh_support,
+                                color_views=views)
         self._mesh_cache = (snap.version, mesh)
         return mesh

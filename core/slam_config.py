@@ -102,8 +102,12 @@ class VoxFusionConfig:
     mesh_res: int = 20
     """Marching-cubes samples per voxel edge for mesh extraction (20 at 0.2 m voxels: a 1 cm lattice,
     sampled in two levels so only cells near the surface cost fine samples, :mod:`.mesh.extract`)."""
+    mesh_colors: Literal["images", "field"] = "images"
+    """Vertex colours: ``images``: from the keyframes that see each vertex (sharp, as saturated as the
+    input; the colour head where no keyframe sees it), ``field``: the colour head only (smooth and
+    desaturated at 0.2 m voxels, see :mod:`.mesh.colors`)."""
     mesh_support: bool = True
-    """Mesh only surface that observations support: faces farther than about one to two 2.5 cm cells
+    """Mesh only surface that observations support: faces farther than about one to two 1.25 cm cells
     from every observed depth point are dropped (:mod:`.mesh.support`)."""
     mode: Literal["offline", "realtime"] = "offline"
     """``offline``: every frame tracked, mapping interleaved deterministically (reproducible on CPU).

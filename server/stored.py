@@ -102,7 +102,8 @@ class StoredMap:
                 data = mesh_file.read_bytes()
             else:
                 mesh = (trimesh.load(mesh_file, file_type="ply", process=False) if fresh
-                        else ckpt.mapper.extract_mesh(ckpt.config.mesh_res, ckpt.config.mesh_support))
+                        else ckpt.mapper.extract_mesh(ckpt.config.mesh_res, ckpt.config.mesh_support,
+                                                  ckpt.config.mesh_colors))
                 data = mesh_bytes(mesh, fmt, self.world_axes())
             self._mesh_cache = {k: v for k, v in self._mesh_cache.items() if k[0] == version}
             self._mesh_cache[(version, fmt)] = data

@@ -6,11 +6,13 @@ their meshes agree: :func:`extract_map_mesh`.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import trimesh
 
 from ..field import SDFDecoder, query
 from ..voxels import VoxelMap
+from .colors import ColorView, image_vertex_colors
 from .extract import extract_mesh
 from .support import SurfaceSupport
 
@@ -18,7 +20,7 @@ __all__ = ["extract_map_mesh"]
 
 
 def extract_map_mesh(voxel_map: VoxelMap, decoder: SDFDecoder, mesh_res: int, support: bool = True,
-                     support_dilate: int = 1) -> trimesh.Trimesh:
+                     support_dilate: int = 1, color_views: list[ColorView] | None = None) -> trimesh.Trimesh:
     """Triangle mesh of the field inside the map's active voxels, with colour-head vertex colours.
 
     Args:
@@ -29,6 +31,8 @@ def extract_map_mesh(voxel_map: VoxelMap, decoder: SDFDecoder, mesh_res: int, su
             without observed-surface evidence (an old checkpoint).
         support_dilate: the support's radius in surface cells (1: a face within about 1-2 cells of an
             observed point is kept).
+        color_views: posed keyframe images: vertices they see take their colours (:mod:`.colors`), the
+            others keep the colour head's; None: colour head only.
 
     Returns the mesh in the map's world frame (metres); see :func:`.extract.extract_mesh`.
     """
@@ -38,6 +42,15 @@ def extract_map_mesh(voxel_map: VoxelMap, decoder: SDFDecoder, mesh_res: int, su
             return query(voxel_map, decoder, points.to(voxel_map.device), with_color=with_color)
 
     keep = SurfaceSupport.from_map(voxel_map, support_dilate) if support else None
-    return extract_mesh(voxel_map.active_voxel_coords, voxel_map.voxel_size_m, field_query,
+    mesh = extract_mesh(voxel_map.active_voxel_coords, voxel_map.voxel_size_m, field_query,
                         mesh_res=mesh_res, device=voxel_map.device, keep_fn=keep,
                         lattice_query_fn=lambda p: field_query(p, with_color=False))
+    if color_views and len(mesh.faces):
+        vertices = torch.from_numpy(np.asarray(mesh.vertices)).to(voxel_map.device)
+        normals = torch.from_numpy(np.asarray(mesh.vertex_normals)).to(voxel_map.device)
+        rgb, seen = image_vertex_colors(vertices, normals, color_views)
+        colors = np.asarray(mesh.visual.vertex_colors).copy()
+        seen_np = seen.cpu().numpy()
+        colors[seen_np, :3] = (rgb[seen].cpu().numpy() * 255.0).round().astype(np.uint8)
+        mesh.visual.vertex_colors = colors
+    return mesh

@@ -329,7 +329,8 @@ def write_scene_views(out_dir: str | Path, panels: Mapping[str, trimesh.Trimesh]
 
     ``<prefix>_frame.png``: the input frame beside every mesh rendered at that frame's camera (``K``,
     ``T_world_cam``, ``width`` x ``height``); ``<prefix>_overview.png``: every mesh from one oblique camera
-    above framing the first mesh (:func:`overview_pose` with ``up``), back faces hidden so a room shows its inside. Empty meshes are
+    above, framed on
+    the first mesh (:func:`overview_pose` with ``up``), back faces hidden so a room shows its inside. Empty meshes are
     skipped; returns the paths written (none when no mesh has a face).
     """
     panels = {k: m for k, m in panels.items() if m is not None and len(m.faces)}

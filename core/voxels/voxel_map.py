@@ -65,9 +65,9 @@ _STATE_VERSION = 1
 ``voxel_active``) are optional: a state without them loads with zero evidence and every voxel active;
 without ``voxel_surface`` the map loads with :attr:`VoxelMap.has_surface_evidence` False."""
 
-SURFACE_CELLS = 8
-"""Surface cells per voxel edge of the observed-surface mask (``8**3 = 512`` bits, 64 bytes per voxel;
-2.5 cm cells in 0.2 m voxels)."""
+SURFACE_CELLS = 16
+"""Surface cells per voxel edge of the observed-surface mask (``16**3 = 4096`` bits, 512 bytes per voxel;
+1.25 cm cells in 0.2 m voxels, so a cell and its neighbours lie within 4.3 cm of the point that marked it)."""
 
 _SURFACE_BYTES = SURFACE_CELLS**3 // 8
 
@@ -114,8 +114,8 @@ class VoxelMap:
         voxel_free: ``[M]`` float32 free-space evidence: pixel rays that crossed the voxel well in front of
             their observed surface.
         voxel_active: ``[M]`` bool; inactive voxels read as empty (module docstring, :meth:`set_active`).
-        voxel_surface: ``[M, 64]`` uint8 bit mask of the voxel's ``8 x 8 x 8`` surface cells that held an
-            observed depth point (bit ``(x * 8 + y) * 8 + z`` of the cell at local ``(x, y, z)``;
+        voxel_surface: ``[M, 512]`` uint8 bit mask of the voxel's ``16 x 16 x 16`` surface cells that held an
+            observed depth point (bit ``(x * 16 + y) * 16 + z`` of the cell at local ``(x, y, z)``;
             :meth:`add_surface_points`): where the scene was actually seen, so mesh extraction can drop
             surface the field invents where nothing was observed (:mod:`..mesh.support`).
     """
@@ -561,14 +561,19 @@ class VoxelMap:
 
         A surface cell ``c`` covers ``[c, c + 1) * voxel_size_m / SURFACE_CELLS`` in world metres.
         """
-        mask = self._voxel_surface
         rows = torch.arange(self.n_voxels, device=self.device)
         if active_only and self._n_inactive:
-            mask, rows = mask[self._voxel_active], rows[self._voxel_active]
-        bits = (mask[:, :, None] >> torch.arange(8, device=self.device, dtype=torch.uint8)) & 1  # [M, 64, 8]
-        vox, bit = bits.view(len(rows), -1).nonzero(as_tuple=True)
-        local = torch.stack([bit // SURFACE_CELLS**2, (bit // SURFACE_CELLS) % SURFACE_CELLS, bit % SURFACE_CELLS], 1)
-        return self._voxel_coords[rows[vox]] * SURFACE_CELLS + local
+            rows = rows[self._voxel_active]
+        rows = rows[self.surface_cell_counts()[rows] > 0]
+        shifts = torch.arange(8, device=self.device, dtype=torch.uint8)
+        out = []
+        for part in rows.split(4096):  # bounds the unpacked bits to 16 MB
+            bits = (self._voxel_surface[part][:, :, None] >> shifts) & 1  # [m, 512, 8]
+            vox, bit = bits.view(len(part), -1).nonzero(as_tuple=True)
+            local = torch.stack([bit // SURFACE_CELLS**2, (bit // SURFACE_CELLS) % SURFACE_CELLS,
+                                 bit % SURFACE_CELLS], 1)
+            out.append(self._voxel_coords[part[vox]] * SURFACE_CELLS + local)
+        return torch.cat(out) if out else torch.empty(0, 3, dtype=torch.int64, device=self.device)
 
     def set_active(self, active: torch.Tensor) -> int:
         """Replace the active mask (``[M]`` bool); returns how many voxels changed state.

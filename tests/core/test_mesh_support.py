@@ -52,7 +52,7 @@ def test_support_keeps_only_faces_near_observed_points():
     kept = extract_mesh(ijk, VOXEL_M, sphere, mesh_res=8, keep_fn=support)
     assert 0.2 * len(full.faces) < len(kept.faces) < 0.6 * len(full.faces)
     centres = kept.triangles_center
-    assert centres[:, 2].min() > 0.037 + 0.1 - 2 * 2 * VOXEL_M / SURFACE_CELLS  # at most ~2 cells below
+    assert centres[:, 2].min() > 0.037 + 0.1 - 2 * np.sqrt(3) * VOXEL_M / SURFACE_CELLS  # <= 2 cell diagonals
     assert len(np.unique(kept.faces)) == len(kept.vertices)  # no unused vertices left behind
     nothing = extract_mesh(ijk, VOXEL_M, sphere, mesh_res=8, keep_fn=SurfaceSupport(
         torch.zeros(0, 3, dtype=torch.long), 0.025))
@@ -99,3 +99,24 @@ def test_up_is_estimated_from_camera_orientations():
     np.testing.assert_allclose(R @ up, [0, 1, 0], atol=1e-12)
     np.testing.assert_allclose(R @ forward, [0, 0, -1], atol=1e-12)
     assert np.isclose(np.linalg.det(R), 1.0)
+
+
+def test_image_colours_follow_the_pixels_and_skip_occluded_views():
+    from voxfusion.core.mesh.colors import ColorView, image_vertex_colors
+
+    h, w = 40, 60
+    K = torch.tensor([[50.0, 0, 29.5], [0, 50.0, 19.5], [0, 0, 1]], dtype=torch.float64)
+    color = torch.zeros(h, w, 3)
+    color[:, : w // 2, 0] = 1.0  # left half red, right half green
+    color[:, w // 2:, 1] = 1.0
+    depth = torch.full((h, w), 2.0)
+    view = ColorView(color, depth, K, torch.eye(4, dtype=torch.float64))
+    pts = torch.tensor([[-0.5, 0.0, 2.0], [0.5, 0.0, 2.0], [0.5, 0.0, 1.0], [5.0, 0.0, 2.0]], dtype=torch.float64)
+    rgb, seen = image_vertex_colors(pts, None, [view])
+    assert seen.tolist() == [True, True, False, False]  # 1 m in front of the observed surface; outside
+    assert torch.allclose(rgb[0], torch.tensor([1.0, 0, 0])) and torch.allclose(rgb[1], torch.tensor([0, 1.0, 0]))
+    # two views: the weighted mean, the closer (head-on) view weighing more
+    far = ColorView(torch.full((h, w, 3), 0.5), torch.full((h, w), 4.0), K,
+                    torch.tensor([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -2.0], [0, 0, 0, 1]], dtype=torch.float64))
+    rgb2, _ = image_vertex_colors(pts[:1], None, [view, far])
+    assert 0.5 < float(rgb2[0, 0]) < 1.0 and float(rgb2[0, 0]) > 0.5 + 0.25

@@ -48,6 +48,11 @@ def mesh_metric_rows(metrics: dict) -> list[dict]:
                                f"{p.poses} poses)", "value": 100 * p.share})
     elif "phantom_skipped" in metrics:
         rows.append({"metric": "phantom surface [%]", "value": f"n/a: {metrics['phantom_skipped']}"})
+    ph = metrics.get("photometric")
+    if ph is not None and ph["n_pixels"]:
+        rows += [{"metric": f"colour error [0-255] (mesh vs {len(ph['frames'])} input frames)", "value": ph["mae"]},
+                 {"metric": "colour chroma / contrast vs input (1 = as vivid)",
+                  "value": f"{ph['chroma_ratio']:.2f} / {ph['contrast_ratio']:.2f}"}]
     return rows
 
 
