@@ -415,6 +415,8 @@ def _write_pictures(args: argparse.Namespace, name: str, capture: Capture, resul
     frame = capture[i]
     T = frame.T_world_cam if frame.T_world_cam is not None else first.trajectory.T_world_cam[i]
     up, _ = camera_up_forward(first.trajectory.T_world_cam)
+    if frame.T_world_cam_device is not None:  # iPhone captures: ARKit's world, +y is up
+        up = np.array([0.0, 1.0, 0.0])
     panels = {method: r.mesh for method, r in results.items()}
     if gt_mesh is not None:
         panels["ground truth"] = gt_mesh

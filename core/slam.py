@@ -133,6 +133,7 @@ class SlamSystem:
         self.mapper: Mapper | None = None
         self.tracker: Tracker | None = None
         self._world: str = "first_camera"  # what the world frame is, set with the first pose (world_axes)
+        self._gravity_y_up = False  # the world is a device's (ARKit) world, +y up
         self.records: list[FrameRecord] = []
         self._snapshot: MapSnapshot | None = None
         self._mesh_cache: tuple[int, trimesh.Trimesh] | None = None
@@ -169,9 +170,12 @@ class SlamSystem:
         choice = self.config.first_pose
         if choice == "reference" and frame.T_world_cam is not None:
             self._world = "reference"
+            # a capture whose reference poses are the device's own (iPhone: ARKit) has a gravity-up world
+            self._gravity_y_up = frame.T_world_cam_device is not None and np.allclose(
+                frame.T_world_cam, frame.T_world_cam_device, atol=1e-6)
             return frame.T_world_cam.copy()
         if choice in ("reference", "device") and frame.T_world_cam_device is not None:
-            self._world = "device"
+            self._world, self._gravity_y_up = "device", True
             return frame.T_world_cam_device.copy()
         self._world = "first_camera"
         return np.eye(4)
@@ -179,14 +183,15 @@ class SlamSystem:
     def world_axes(self) -> WorldAxes:
         """What the session's world frame is (reference, device or first camera), where "up" is in it and
         the inverse of the first pose: what mesh files and their ``.frame.json`` sidecars need. Up is +y
-        in a device world (ARKit's gravity axis), else estimated from the cameras' orientations."""
+        in a device world (ARKit's gravity axis, also when the capture's reference poses are the device's),
+        else estimated from the cameras' orientations."""
         with self._lock:
             poses = np.stack([r.current_pose() for r in self.records if not r.lost] or
                              [r.current_pose() for r in self.records[:1]] or [np.eye(4)])
             first = self.records[0].current_pose() if self.records else None
         up, forward = camera_up_forward(poses)
         world = self._world
-        if world == "device":
+        if self._gravity_y_up:  # ARKit-style world: +y is up
             up = np.array([0.0, 1.0, 0.0])
         return WorldAxes(world, tuple(up.tolist()), tuple(forward.tolist()),
                          None if first is None else invert_pose(first))

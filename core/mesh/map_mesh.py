@@ -47,7 +47,7 @@ def extract_map_mesh(voxel_map: VoxelMap, decoder: SDFDecoder, mesh_res: int, su
                         lattice_query_fn=lambda p: field_query(p, with_color=False))
     if color_views and len(mesh.faces):
         vertices = torch.from_numpy(np.asarray(mesh.vertices)).to(voxel_map.device)
-        normals = torch.from_numpy(np.asarray(mesh.vertex_normals)).to(voxel_map.device)
+        normals = torch.from_numpy(np.array(mesh.vertex_normals)).to(voxel_map.device)  # a writable copy
         rgb, seen = image_vertex_colors(vertices, normals, color_views)
         colors = np.asarray(mesh.visual.vertex_colors).copy()
         seen_np = seen.cpu().numpy()

@@ -51,15 +51,15 @@ class SurfaceSupport:
             self._keys = torch.empty(0, dtype=torch.int64, device=self.device)
             self._lo = torch.zeros(3, dtype=torch.int64, device=self.device)
             self._hi = self._lo - 1
+            self._offsets = torch.zeros(1, 3, dtype=torch.int64, device=self.device)
             return
         r = torch.arange(-dilate, dilate + 1, device=self.device)
-        offsets = torch.cartesian_prod(r, r, r).view(-1, 3)
+        self._offsets = torch.cartesian_prod(r, r, r).view(-1, 3)
         self._lo = cells.min(0).values - dilate
         self._hi = cells.max(0).values + dilate
         if int((self._hi - self._lo).max()) >= 1 << _BITS:
             raise ValidationError("cells", f"span more than {1 << _BITS} cells on an axis")
-        keys = [self._pack(cells + o - self._lo) for o in offsets]  # one offset at a time bounds memory
-        self._keys = torch.unique(torch.cat(keys))
+        self._keys = torch.unique(self._pack(cells - self._lo))  # sorted; neighbours are probed per query
 
     @classmethod
     def from_map(cls, voxel_map: VoxelMap, dilate: int = 1) -> SurfaceSupport | None:
@@ -78,9 +78,13 @@ class SurfaceSupport:
         out = torch.zeros(len(cell), dtype=torch.bool, device=self.device)
         if self.n_cells == 0 or not bool(inside.any()):
             return out
-        keys = self._pack(cell[inside] - self._lo)
-        pos = torch.searchsorted(self._keys, keys).clamp(max=len(self._keys) - 1)
-        out[inside] = self._keys[pos] == keys
+        rows = inside.nonzero().squeeze(1)
+        for part in rows.split(1 << 15):  # bounds the probe tensors to ~40 MB
+            c = cell[part][:, None, :] + self._offsets  # [n, 27, 3] the neighbourhood
+            ok = ((c >= self._lo) & (c <= self._lo + (1 << _BITS) - 1)).all(-1)
+            keys = self._pack((c - self._lo).clamp(min=0).view(-1, 3)).view(len(part), -1)
+            pos = torch.searchsorted(self._keys, keys).clamp(max=len(self._keys) - 1)
+            out[part] = ((self._keys[pos] == keys) & ok).any(dim=1)
         return out
 
     @staticmethod

@@ -635,6 +635,7 @@ class VoxelMap:
             "voxel_free": self._voxel_free.cpu().clone(),
             "voxel_active": self._voxel_active.cpu().clone(),
             "voxel_surface": self._voxel_surface.cpu().clone() if self.has_surface_evidence else None,
+            "surface_cells_per_edge": SURFACE_CELLS,
             "rng_state": self._generator.get_state() if self._generator is not None else None,
         }
 
@@ -671,7 +672,10 @@ class VoxelMap:
         for name, t in (("voxel_hits", hits), ("voxel_free", free), ("voxel_active", active)):
             if t.shape != (m,):
                 raise ShapeError(f"state_dict.{name}", tuple(t.shape), f"({m},)")
-        surface_known = state.get("voxel_surface") is not None
+        # a mask at another cell size (an older state) is dropped: the map then has no surface evidence
+        surface_known = (state.get("voxel_surface") is not None
+                         and state.get("surface_cells_per_edge", SURFACE_CELLS) == SURFACE_CELLS
+                         and tuple(state["voxel_surface"].shape)[1:] == (_SURFACE_BYTES,))
         surface = (torch.as_tensor(state["voxel_surface"], device=dev).to(torch.uint8) if surface_known
                    else torch.zeros(m, _SURFACE_BYTES, dtype=torch.uint8, device=dev))
         if surface.shape != (m, _SURFACE_BYTES):
