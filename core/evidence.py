@@ -96,8 +96,8 @@ class EvidenceConfig:
     :meth:`~.voxels.VoxelMap.add_surface_points`) ever held a depth point. A real surface is extended: even
     a sliver of floor grazing a voxel's border fills dozens of cells (14-64 measured with 2.5 cm cells on the
     synthetic room, where a floor 2 mm above a voxel border made 40 such slivers that the ratio alone masked,
-    cutting mesh completion to 91 %; about four times as many with 1.25 cm cells), while the isolated
-    outliers this rule is for fill one cell each (1-9 measured)."""
+    cutting mesh completion to 91 %; a surface crosses about four times as many 1.25 cm cells, not
+    re-measured), while isolated outliers fill one cell each (1-9 measured with 2.5 cm cells)."""
 
     def __post_init__(self) -> None:
         if self.free_rays < 1:

@@ -150,6 +150,12 @@ def _backproject(frame: FrameData, T_world_cam: torch.Tensor, stride: int) -> to
     return pts @ T[:3, :3].T + T[:3, 3]
 
 
+def keyframe_color_views(keyframes: list[Keyframe] | tuple[Keyframe, ...]) -> list[ColorView]:
+    """The keyframes' colour images at their current poses, for mesh colours (none for depth-only maps)."""
+    return [ColorView(kf.data.color, kf.data.depth_m, kf.data.K, kf.T_world_cam.clone())
+            for kf in list(keyframes) if kf.data.color is not None]
+
+
 class Mapper:
     """Owns the map (voxels + decoder) and fuses posed frames into it.
 
@@ -318,15 +324,11 @@ class Mapper:
         with torch.no_grad():
             return query(self.voxels, self.decoder, points_world.to(self.device))
 
-    def color_views(self) -> list[ColorView]:
-        """The keyframes' colour images at their current poses (none for depth-only maps)."""
-        return [ColorView(kf.data.color, kf.data.depth_m, kf.data.K, kf.T_world_cam.clone())
-                for kf in list(self.keyframes) if kf.data.color is not None]
 
     def extract_mesh(self, mesh_res: int = 20, support: bool = True,  # noqa: ANN201 - trimesh.Trimesh
                      colors: str = "images"):
         """Triangle mesh of the zero level set inside active voxels where observations support it, with
         vertex colours from the keyframe images (``colors="images"``) or the colour head (``"field"``)
         (:func:`.mesh.extract_map_mesh`)."""
-        views = self.color_views() if colors == "images" else None
+        views = keyframe_color_views(self.keyframes) if colors == "images" else None
         return extract_map_mesh(self.voxels, self.decoder, mesh_res, support, color_views=views)

@@ -23,6 +23,7 @@ from .eval.report import write_json
 from .framedata import frame_to_device
 from .mapping import Mapper, MappingStep
 from .mesh import export_mesh
+from .run import reference_world_axes, write_mesh_views
 from .slam_config import VoxFusionConfig, resolve_device
 from .trajectory import Trajectory, write_tum_trajectory
 from .voxel_export import export_voxels
@@ -130,7 +131,6 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
 def write_map_outputs(result: MapRunResult, capture: Capture | None = None) -> None:
     """mesh.ply (+ its ``.frame.json``), voxels.npz, voxels.ply, checkpoint.pt, trajectory.txt, timings.json in
     ``result.out_dir``, and with ``capture`` the pictures ``view_frame.png`` / ``view_overview.png``."""
-    from .run import reference_world_axes, write_mesh_views  # run imports the engine; keep this module light
 
     out = result.out_dir
     if out is None:

@@ -38,9 +38,8 @@ from .errors import ValidationError, VoxFusionError
 from .field import SDFDecoder
 from .framedata import FrameData, frame_to_device
 from .geometry import invert_pose, nearest_rigid
-from .mapping import Keyframe, Mapper, MappingStep
+from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views
 from .mesh import extract_map_mesh
-from .mesh.colors import ColorView
 from .mesh.frame import WorldAxes, camera_up_forward
 from .render import RenderedImage, render_depth_image
 from .slam_config import VoxFusionConfig, resolve_device
@@ -110,8 +109,9 @@ class MapSnapshot:
     voxels: VoxelMap
     decoder: SDFDecoder
     version: int
-    color_views: tuple[ColorView, ...] = ()
-    """The keyframes' colour images at their poses when the snapshot was taken (mesh colours)."""
+    keyframes: tuple[Keyframe, ...] = ()
+    """The keyframes when the snapshot was taken (their images colour meshes; their poses are read when a
+    mesh is made, so building a snapshot costs no pose evaluation)."""
 
 
 class SlamSystem:
@@ -227,7 +227,7 @@ class SlamSystem:
         decoder = copy.deepcopy(m.decoder).requires_grad_(False)
         if stream is not None:
             stream.synchronize()
-        snap = MapSnapshot(voxels, decoder, m.version, tuple(m.color_views()))
+        snap = MapSnapshot(voxels, decoder, m.version, tuple(m.keyframes))
         with self._lock:
             self._snapshot = snap
         if self.tracker is not None:
@@ -483,7 +483,7 @@ class SlamSystem:
         if cached is not None and cached[0] == snap.version:
             return cached[1]
 
-        views = list(snap.color_views) if self.config.mesh_colors == "images" else None
+        views = keyframe_color_views(snap.keyframes) if self.config.mesh_colors == "images" else None
         mesh = extract_map_mesh(snap.voxels, snap.decoder, self.config.mesh_res, self.config.mesh_support,
                                 color_views=views)
         self._mesh_cache = (snap.version, mesh)

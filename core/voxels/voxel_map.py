@@ -152,6 +152,7 @@ class VoxelMap:
         self._voxel_free = torch.empty(0, dtype=torch.float32, device=device)
         self._voxel_active = torch.empty(0, dtype=torch.bool, device=device)
         self._voxel_surface = torch.empty(0, _SURFACE_BYTES, dtype=torch.uint8, device=device)
+        self._voxel_surface_count = torch.empty(0, dtype=torch.int32, device=device)  # set bits per row
         self.has_surface_evidence = True
         """False for a map loaded from a state saved before the surface mask existed (mask all zero)."""
         self._n_inactive = 0
@@ -449,6 +450,7 @@ class VoxelMap:
         self._voxel_free = torch.cat([self._voxel_free, self._voxel_free.new_zeros(k)])
         self._voxel_active = torch.cat([self._voxel_active, self._voxel_active.new_ones(k)])
         self._voxel_surface = torch.cat([self._voxel_surface, self._voxel_surface.new_zeros(k, _SURFACE_BYTES)])
+        self._voxel_surface_count = torch.cat([self._voxel_surface_count, self._voxel_surface_count.new_zeros(k)])
         self._update_bounds(new_coords)
         self._invalidate_grids()
         if optimizer is not None:
@@ -549,12 +551,14 @@ class VoxelMap:
         new = old | add.to(torch.uint8)
         flat[keys] = new
         self._voxel_surface = flat.view(-1, _SURFACE_BYTES)
-        return int(_popcount8(new).sum() - _popcount8(old).sum())
+        gained = (_popcount8(new) - _popcount8(old)).to(torch.int32)
+        self._voxel_surface_count = self._voxel_surface_count.index_add(0, keys // _SURFACE_BYTES, gained)
+        return int(gained.sum())
 
     def surface_cell_counts(self) -> torch.Tensor:
-        """``[M]`` int64: observed surface cells per voxel (0..512)."""
-        lut = _POPCOUNT8.to(self.device)
-        return lut[self._voxel_surface.long()].sum(dim=1)
+        """``[M]`` int32: observed surface cells per voxel (0..4096), kept up to date by
+        :meth:`add_surface_points` (the mask's popcount per row)."""
+        return self._voxel_surface_count
 
     def surface_cells(self, active_only: bool = True) -> torch.Tensor:
         """``[K, 3]`` int64 global coordinates of the observed surface cells.
@@ -598,7 +602,7 @@ class VoxelMap:
         idx_tensors = [self._voxel_codes, self._voxel_coords, self._voxel_vertex_ids, self._vertex_codes,
                        self._sorted_voxel_codes, self._voxel_perm, self._sorted_vertex_codes,
                        self._vertex_perm, self._voxel_hits, self._voxel_free, self._voxel_active,
-                       self._voxel_surface]
+                       self._voxel_surface, self._voxel_surface_count]
         idx_tensors += [g.table for g in self._grids.values() if g is not None]
         dec = 0
         if decoder is not None:
@@ -691,6 +695,7 @@ class VoxelMap:
         self._voxel_coords = morton_decode(vc)
         self._voxel_hits, self._voxel_free, self._voxel_active = hits.clone(), free.clone(), active.clone()
         self._voxel_surface, self.has_surface_evidence = surface.clone(), surface_known
+        self._voxel_surface_count = _popcount8(surface.reshape(-1)).view(m, _SURFACE_BYTES).sum(1).to(torch.int32)
         self._n_inactive = int((~active).sum())
         self._bounds = None
         self._update_bounds(self._voxel_coords)
@@ -736,7 +741,7 @@ class VoxelMap:
             return self
         for name in ("_voxel_codes", "_voxel_coords", "_voxel_vertex_ids", "_vertex_codes",
                      "_sorted_voxel_codes", "_voxel_perm", "_sorted_vertex_codes", "_vertex_perm",
-                     "_voxel_hits", "_voxel_free", "_voxel_active", "_voxel_surface"):
+                     "_voxel_hits", "_voxel_free", "_voxel_active", "_voxel_surface", "_voxel_surface_count"):
             setattr(self, name, getattr(self, name).to(device))
         if self._bounds is not None:
             self._bounds = (self._bounds[0].to(device), self._bounds[1].to(device))

@@ -36,6 +36,15 @@ def test_surface_mask_marks_cells_counts_and_survives_a_checkpoint():
     assert sorted(vmap.surface_cell_counts().tolist()) == [1, 2]
     back = VoxelMap.from_state_dict(vmap.state_dict())
     assert back.has_surface_evidence and torch.equal(back.voxel_surface, vmap.voxel_surface)
+    assert torch.equal(back.surface_cell_counts(), vmap.surface_cell_counts())
+    # the counts kept by add_surface_points equal the mask's popcount, also after many random updates
+    rng = torch.Generator().manual_seed(0)
+    cloud = torch.rand(5000, 3, generator=rng, dtype=torch.float64) * 0.6 + torch.tensor([-0.2, -0.2, 0.8])
+    vmap.allocate(cloud)
+    for part in cloud.split(700):
+        vmap.add_surface_points(part)
+    bits = sum(((vmap.voxel_surface.long() >> b) & 1).sum(1) for b in range(8))
+    assert torch.equal(vmap.surface_cell_counts().long(), bits) and int(bits.sum()) > 1000
     old = vmap.state_dict()
     del old["voxel_surface"]
     legacy = VoxelMap.from_state_dict(old)
