@@ -9,7 +9,7 @@ from pydantic import Field
 
 from .schemas import SessionStatus, _Model
 
-__all__ = ["SessionStatusOut", "SessionListOut", "HealthOut"]
+__all__ = ["SessionStatusOut", "SessionListOut", "HealthOut", "LatestFrameOut"]
 
 
 class SessionStatusOut(SessionStatus):
@@ -23,6 +23,8 @@ class SessionStatusOut(SessionStatus):
     """Recorded frames still to be replayed (resume in progress)."""
     frames_queued: int = Field(0, ge=0)
     """Frames accepted but not yet handed to tracking (the bounded ingest queue)."""
+    frames_lost: int = Field(0, ge=0)
+    """Tracked frames whose tracking failed (their pose is the motion model's guess; they are not fused)."""
 
 
 class SessionListOut(_Model):
@@ -46,3 +48,26 @@ class HealthOut(_Model):
     max_sessions: int = Field(ge=1)
     zenoh: bool = False
     """The zenoh bridge is running."""
+
+
+class LatestFrameOut(_Model):
+    """``GET /sessions/{id}/frames/latest`` answer: the newest frame the session received (the live viewer
+    draws the current camera's frustum from it)."""
+
+    seq: int
+    """The frame's wire ``seq``."""
+    timestamp_s: float
+    """Capture time (device clock), seconds."""
+    width: int = Field(ge=1)
+    """Depth image width, pixels (the intrinsics are for this resolution)."""
+    height: int = Field(ge=1)
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    has_colour: bool
+    """``/frames/latest/colour.jpg`` has an image."""
+    valid_depth_fraction: float = Field(ge=0, le=1)
+    """Share of depth pixels that are valid (> 0)."""
+    median_depth_m: float | None = None
+    """Median of the valid depths, metres (``None`` when none is valid)."""

@@ -40,6 +40,7 @@ from .errors import (
     error_status,
 )
 from .ingest import check_message_limits
+from .live_frame import LatestFrame, last_recorded_frame
 from .outputs import RenderBody, encode_render
 from .session import PoseListener, Session
 from .settings import ServerSettings
@@ -282,6 +283,22 @@ class SessionManager:
         s = self._open_session(session_id)
         poses = s.poses() if s is not None else self._stored_map(session_id).poses()
         return Trajectory(session=session_id, poses=poses)
+
+    def latest_frame(self, session_id: str) -> LatestFrame:
+        """The newest frame the session received: the open session's last accepted frame, else the last
+        record of its recording (finished sessions, or an open one resumed since its last frame).
+
+        Raises:
+            NotReadyError: the session has received no frame (409).
+        """
+        self.get(session_id)
+        s = self._open_session(session_id)
+        latest = s.latest_frame() if s is not None else None
+        if latest is None:
+            latest = last_recorded_frame(self.settings.sessions_dir / session_id / RECORDING_FILENAME)
+        if latest is None:
+            raise NotReadyError(f"session {session_id} has received no frame yet")
+        return latest
 
     def render(self, session_id: str, req: RenderRequest) -> RenderBody:
         """Depth (+ validity mask, + colour if asked) rendered from the map at a client's pose."""

@@ -51,6 +51,7 @@ from voxfusion.proto.recording import RECORDING_FILENAME, RecordingWriter, iter_
 from voxfusion.proto.schemas import PoseOut, RenderRequest, SessionMode, SessionState
 
 from .errors import NotReadyError, QueueFullError, SessionConflictError
+from .live_frame import LatestFrame
 from .outputs import pose_out
 from .settings import ServerSettings
 from .store import SessionStore
@@ -102,6 +103,7 @@ class Session:
         self._mesh_lock = threading.Lock()
         self._mesh_cache: dict[tuple[int, str], bytes] = {}
         self._latest: PoseOut | None = None
+        self._latest_frame: LatestFrame | None = None
         self._submitted = 0
         self._tracked = 0
         self._limits = DecodeLimits(max_width=settings.max_image_width, max_height=settings.max_image_height)
@@ -162,6 +164,7 @@ class Session:
                 raise
             with self._cond:
                 self._queue.append(decoded.frame)
+                self._latest_frame = LatestFrame(seq, decoded.frame)
                 if self.state == SessionState.created:
                     self.state = SessionState.running
                     self.store.set_state(self.id, self.state.value)
@@ -319,7 +322,8 @@ class Session:
         return SessionStatusOut(
             id=self.id, name=self.name, mode=self.mode, state=self.state, created_at=self.created_at,
             frames_received=len(self.recorder), frames_tracked=st.frames_tracked, frames_mapped=st.frames_mapped,
-            frames_dropped=st.frames_dropped, keyframes=st.keyframes, voxels=st.voxels, fps=max(0.0, st.fps),
+            frames_dropped=st.frames_dropped, frames_lost=st.frames_lost, keyframes=st.keyframes, voxels=st.voxels,
+            fps=max(0.0, st.fps),
             latency_ms=lat, last_error=self.last_error, map_version=st.map_version, replay_pending=replay_left,
             frames_queued=queued)
 
@@ -340,6 +344,11 @@ class Session:
         if latest is None:
             raise NotReadyError(f"session {self.id} has no tracked frame yet")
         return latest
+
+    def latest_frame(self) -> LatestFrame | None:
+        """The last frame this session accepted since it was opened (``None`` before the first)."""
+        with self._cond:
+            return self._latest_frame
 
     def render(self, req: RenderRequest) -> tuple[RenderedImage, int]:
         snap = self.slam.snapshot
