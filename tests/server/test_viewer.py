@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from browser import CHROMIUM_MISSING, headless_chromium, screenshot
+from browser import CHROMIUM_MISSING, headless_chromium, screenshot, viewer_value
 from srvutil import TINY, make_scene, wait_until
 
 from voxfusion.server.viewer_assets import BUILD_INFO, VIEWER_DIST, source_digest
@@ -89,10 +89,6 @@ def _keep_screenshot(driver, name: str) -> None:
         (Path(folder) / f"viewer-{name}.png").write_bytes(driver.get_screenshot_as_png())
 
 
-def _dataset(driver, key: str) -> str | None:
-    return driver.execute_script(f"return document.body.dataset.{key} || null;")
-
-
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM_MISSING is not None, reason=CHROMIUM_MISSING or "")
 def test_viewer_shows_the_scan_growing_in_chromium(server_factory):
@@ -106,10 +102,10 @@ def test_viewer_shows_the_scan_growing_in_chromium(server_factory):
     driver = headless_chromium()
     try:
         driver.get(f"{srv.url}/sessions/{sid}/view?token={token}")
-        wait_until(lambda: int(_dataset(driver, "meshVertices") or 0) > 0, 180, "the viewer to show a mesh", 0.5)
+        wait_until(lambda: int(viewer_value(driver, "meshVertices") or 0) > 0, 180, "the viewer to show a mesh", 0.5)
         assert token not in driver.current_url, "the page must take the token out of the address bar"
-        wait_until(lambda: int(_dataset(driver, "poses") or 0) >= 6, 30, "the viewer to show the trajectory", 0.5)
-        first_version = int(_dataset(driver, "meshVersion"))
+        wait_until(lambda: int(viewer_value(driver, "poses") or 0) >= 6, 30, "the viewer to show the trajectory", 0.5)
+        first_version = int(viewer_value(driver, "meshVersion"))
         first = screenshot(driver)
         _keep_screenshot(driver, "first")
         region = _scene_region(first)
@@ -118,11 +114,11 @@ def test_viewer_shows_the_scan_growing_in_chromium(server_factory):
 
         for message in scene.messages[6:]:
             assert srv.api.post_frame(sid, token, message).status_code == 202
-        wait_until(lambda: int(_dataset(driver, "frameSeq") or 0) == len(scene.messages) - 1, 60,
+        wait_until(lambda: int(viewer_value(driver, "frameSeq") or 0) == len(scene.messages) - 1, 60,
                    "the viewer to show the newest frame", 0.5)
-        wait_until(lambda: int(_dataset(driver, "meshVersion") or 0) > first_version, 240,
+        wait_until(lambda: int(viewer_value(driver, "meshVersion") or 0) > first_version, 240,
                    "the viewer to load a newer mesh", 0.5)
-        wait_until(lambda: int(_dataset(driver, "poses") or 0) >= 12, 120, "more poses in the viewer", 0.5)
+        wait_until(lambda: int(viewer_value(driver, "poses") or 0) >= 12, 120, "more poses in the viewer", 0.5)
         later = screenshot(driver)
         _keep_screenshot(driver, "later")
         diff = np.abs(_scene_region(later) - _scene_region(first)).mean()
@@ -135,8 +131,9 @@ def test_viewer_shows_the_scan_growing_in_chromium(server_factory):
         # A finished session is served from its checkpoint and recording.
         srv.api.http.post(f"/sessions/{sid}/finish", headers=srv.api.auth(token)).raise_for_status()
         driver.get(f"{srv.url}/sessions/{sid}/view?token={token}")
-        wait_until(lambda: _dataset(driver, "state") == "finished" and int(_dataset(driver, "meshVertices") or 0),
-                   120, "the finished session's mesh in the viewer", 0.5)
+        wait_until(lambda: viewer_value(driver, "state") == "finished"
+                   and int(viewer_value(driver, "meshVertices") or 0), 120,
+                   "the finished session's mesh in the viewer", 0.5)
         assert _scene_region(screenshot(driver)).std() > 8
         _keep_screenshot(driver, "finished")
     finally:
