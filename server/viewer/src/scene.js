@@ -76,8 +76,10 @@ export class SessionScene {
     const geometry = this.loader.parse(plyBytes);
     if (!geometry.getAttribute('normal')) geometry.computeVertexNormals();
     const hasColour = Boolean(geometry.getAttribute('color'));
+    // Front faces only: the mesh's triangles face the free space the cameras saw, so from outside a room
+    // the near walls fall away and the inside shows (a "dollhouse" view).
     const material = new THREE.MeshLambertMaterial({
-      vertexColors: hasColour, color: hasColour ? 0xffffff : 0xb8c4d6, side: THREE.DoubleSide });
+      vertexColors: hasColour, color: hasColour ? 0xffffff : 0xb8c4d6, side: THREE.FrontSide });
     const mesh = new THREE.Mesh(geometry, material);
     if (this.mesh) {
       this.worldGroup.remove(this.mesh);
@@ -131,8 +133,8 @@ export class SessionScene {
     if (box.isEmpty()) return;
     const sphere = box.getBoundingSphere(new THREE.Sphere());
     const radius = Math.max(sphere.radius, 0.5);
-    const direction = new THREE.Vector3(0.6, 0.7, 0.9).normalize();
-    this.camera.position.copy(sphere.center).addScaledVector(direction, radius * 2.2);
+    const direction = new THREE.Vector3(0.5, 1.0, 0.8).normalize();  // behind the first camera, 45 deg up
+    this.camera.position.copy(sphere.center).addScaledVector(direction, radius * 1.9);
     this.controls.target.copy(sphere.center);
     this.grid.position.y = box.min.y;
   }
