@@ -136,7 +136,7 @@ class SlamSystem:
         self._gravity_y_up = False  # the world is a device's (ARKit) world, +y up
         self.records: list[FrameRecord] = []
         self._snapshot: MapSnapshot | None = None
-        self._mesh_cache: tuple[int, trimesh.Trimesh] | None = None
+        self._mesh_cache: dict[tuple[int, int], trimesh.Trimesh] = {}
         self._lock = threading.RLock()
         self._cond = threading.Condition(self._lock)
         self._pending: deque[tuple[RGBDFrame, float]] = deque()
@@ -474,17 +474,22 @@ class SlamSystem:
             raise ValidationError("map", "the map is empty: no frame has been mapped yet")
         return render_depth_image(snap.voxels, snap.decoder, K, T_world_cam, width, height, self.config.render)
 
-    def mesh(self) -> trimesh.Trimesh:
-        """Mesh of the newest snapshot, cached per map version."""
-        snap = self.snapshot
+    def mesh(self, mesh_res: int | None = None, snapshot: MapSnapshot | None = None) -> trimesh.Trimesh:
+        """Mesh of ``snapshot`` (default: the newest) at ``mesh_res`` samples per voxel edge (default
+        ``config.mesh_res``; :meth:`VoxFusionConfig.preview_mesh_res` for a cheap preview), cached per map
+        version and res. Pass the snapshot whose version you label the mesh with: mapping may publish a
+        newer one meanwhile."""
+        snap = self.snapshot if snapshot is None else snapshot
         if snap is None:
             raise ValidationError("map", "the map is empty: no frame has been mapped yet")
-        cached = self._mesh_cache
-        if cached is not None and cached[0] == snap.version:
-            return cached[1]
+        res = self.config.mesh_res if mesh_res is None else int(mesh_res)
+        key = (snap.version, res)
+        cached = self._mesh_cache.get(key)
+        if cached is not None:
+            return cached
 
         views = keyframe_color_views(snap.keyframes) if self.config.mesh_colors == "images" else None
-        mesh = extract_map_mesh(snap.voxels, snap.decoder, self.config.mesh_res, self.config.mesh_support,
-                                color_views=views)
-        self._mesh_cache = (snap.version, mesh)
+        mesh = extract_map_mesh(snap.voxels, snap.decoder, res, self.config.mesh_support, color_views=views)
+        self._mesh_cache = {k: m for k, m in self._mesh_cache.items() if k[0] == snap.version}
+        self._mesh_cache[key] = mesh
         return mesh

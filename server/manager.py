@@ -41,7 +41,7 @@ from .errors import (
 )
 from .ingest import check_message_limits
 from .live_frame import LatestFrame, last_recorded_frame
-from .outputs import RenderBody, encode_render
+from .outputs import MESH_DETAILS, RenderBody, encode_render
 from .session import PoseListener, Session
 from .settings import ServerSettings
 from .store import SessionRow, SessionStore
@@ -309,13 +309,17 @@ class SessionManager:
             image = image._replace(color=None)
         return encode_render(image, req.format, version)
 
-    def mesh_bytes(self, session_id: str, fmt: str = "ply") -> tuple[bytes, int]:
-        """The mesh (``ply``/``glb``/``obj``) and its map version (cached per version)."""
+    def mesh_bytes(self, session_id: str, fmt: str = "ply", detail: str = "full") -> tuple[bytes, int]:
+        """The mesh (``ply``/``glb``/``obj``) at ``detail`` (``full`` / ``preview``) and the map version it
+        was extracted from (cached per version)."""
         if fmt not in MESH_FORMATS:
             raise ValidationError("format", f"unknown mesh format {fmt!r}; use one of {', '.join(MESH_FORMATS)}")
+        if detail not in MESH_DETAILS:
+            raise ValidationError("detail", f"unknown mesh detail {detail!r}; use one of {', '.join(MESH_DETAILS)}")
         self.get(session_id)
         s = self._open_session(session_id)
-        return s.mesh_bytes(fmt) if s is not None else self._stored_map(session_id).mesh_bytes(fmt)
+        return (s.mesh_bytes(fmt, detail) if s is not None  # type: ignore[arg-type]
+                else self._stored_map(session_id).mesh_bytes(fmt, detail))  # type: ignore[arg-type]
 
     def mesh_frame(self, session_id: str, fmt: str = "ply") -> dict:
         """Which frame the mesh as ``fmt`` is in (the ``.frame.json`` sidecar object)."""

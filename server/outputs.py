@@ -19,6 +19,7 @@ z-depth (not the ray length) at the requested pose and intrinsics.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import cv2
 import numpy as np
@@ -32,6 +33,8 @@ from voxfusion.proto.schemas import PoseOut
 
 __all__ = [
     "MESH_MEDIA_TYPES",
+    "MESH_DETAILS",
+    "MeshDetail",
     "VOXEL_MEDIA_TYPES",
     "RenderBody",
     "pose_out",
@@ -41,6 +44,10 @@ __all__ = [
 
 MESH_MEDIA_TYPES = {"ply": "application/octet-stream", "glb": "model/gltf-binary", "obj": "model/obj"}
 """``Content-Type`` of each mesh format (PLY has no registered media type)."""
+MeshDetail = Literal["full", "preview"]
+"""``full``: the configured mesh resolution (``mesh_res``); ``preview``: a coarser lattice (about 2.5 cm,
+:meth:`VoxFusionConfig.preview_mesh_res`), several times cheaper to extract (the live viewer's)."""
+MESH_DETAILS: tuple[str, ...] = get_args(MeshDetail)
 VOXEL_MEDIA_TYPES = {"npz": "application/octet-stream", "ply": "application/octet-stream"}
 
 

@@ -52,7 +52,7 @@ from voxfusion.proto.schemas import PoseOut, RenderRequest, SessionMode, Session
 
 from .errors import NotReadyError, QueueFullError, SessionConflictError
 from .live_frame import LatestFrame
-from .outputs import pose_out
+from .outputs import MeshDetail, pose_out
 from .settings import ServerSettings
 from .store import SessionStore
 from .stored import CHECKPOINT_FILE, MESH_FILE, POSES_FILE, TRAJECTORY_FILE
@@ -101,7 +101,7 @@ class Session:
         self._finishing = False
         self._finish_lock = threading.Lock()
         self._mesh_lock = threading.Lock()
-        self._mesh_cache: dict[tuple[int, str], bytes] = {}
+        self._mesh_cache: dict[tuple[int, str, int], bytes] = {}
         self._latest: PoseOut | None = None
         self._latest_frame: LatestFrame | None = None
         self._submitted = 0
@@ -358,15 +358,17 @@ class Session:
                                    self.config.render)
         return image, snap.version
 
-    def mesh_bytes(self, fmt: str) -> tuple[bytes, int]:
-        """The mesh of the newest map as ``fmt``; extraction and encoding are cached per map version."""
+    def mesh_bytes(self, fmt: str, detail: MeshDetail = "full") -> tuple[bytes, int]:
+        """The mesh of the newest map as ``fmt`` at ``detail`` (``full``: ``config.mesh_res``; ``preview``:
+        its cheap preview lattice), and the map version it was extracted from; cached per version."""
         snap = self.slam.snapshot
         if snap is None:
             raise NotReadyError(f"session {self.id} has no map yet: no frame has been mapped")
+        res = self.config.preview_mesh_res() if detail == "preview" else self.config.mesh_res
         with self._mesh_lock:
-            key = (snap.version, fmt)
+            key = (snap.version, fmt, res)
             if key not in self._mesh_cache:
-                mesh = self.slam.mesh()
+                mesh = self.slam.mesh(res, snapshot=snap)
                 self._mesh_cache = {k: v for k, v in self._mesh_cache.items() if k[0] == snap.version}
                 self._mesh_cache[key] = mesh_bytes(mesh, fmt, self.slam.world_axes())
             return self._mesh_cache[key], snap.version

@@ -31,6 +31,7 @@ from voxfusion.core.voxel_export import voxels_npz_bytes, voxels_ply_bytes
 from voxfusion.proto.schemas import PoseOut, RenderRequest
 
 from .errors import NotReadyError
+from .outputs import MeshDetail
 
 __all__ = ["CHECKPOINT_FILE", "POSES_FILE", "MESH_FILE", "TRAJECTORY_FILE", "MAX_LOADED", "StoredMap"]
 
@@ -68,7 +69,7 @@ class StoredMap:
         self.folder = Path(folder)
         self.device = device
         self._lock = threading.Lock()
-        self._mesh_cache: dict[tuple[int, str], bytes] = {}
+        self._mesh_cache: dict[tuple[int, str, str], bytes] = {}
 
     @property
     def checkpoint_path(self) -> Path:
@@ -88,25 +89,27 @@ class StoredMap:
             return []
         return [PoseOut.model_validate(p) for p in json.loads(path.read_text())]
 
-    def mesh_bytes(self, fmt: str) -> tuple[bytes, int]:
-        """The mesh as ``fmt`` and the map version it belongs to."""
+    def mesh_bytes(self, fmt: str, detail: MeshDetail = "full") -> tuple[bytes, int]:
+        """The mesh as ``fmt`` at ``detail`` (``full``: the final ``mesh.ply`` when it is as new as the
+        checkpoint; ``preview``: extracted at the preview lattice) and the map version it belongs to."""
         ckpt = self._checkpoint()
         version = int(ckpt.mapper.version)
         with self._lock:
-            cached = self._mesh_cache.get((version, fmt))
+            cached = self._mesh_cache.get((version, fmt, detail))
             if cached is not None:
                 return cached, version
             mesh_file = self.folder / MESH_FILE
-            fresh = mesh_file.is_file() and mesh_file.stat().st_mtime_ns >= self.checkpoint_path.stat().st_mtime_ns
+            fresh = (detail == "full" and mesh_file.is_file()
+                     and mesh_file.stat().st_mtime_ns >= self.checkpoint_path.stat().st_mtime_ns)
             if fresh and fmt == "ply":
                 data = mesh_file.read_bytes()
             else:
+                res = ckpt.config.preview_mesh_res() if detail == "preview" else ckpt.config.mesh_res
                 mesh = (trimesh.load(mesh_file, file_type="ply", process=False) if fresh
-                        else ckpt.mapper.extract_mesh(ckpt.config.mesh_res, ckpt.config.mesh_support,
-                                                  ckpt.config.mesh_colors))
+                        else ckpt.mapper.extract_mesh(res, ckpt.config.mesh_support, ckpt.config.mesh_colors))
                 data = mesh_bytes(mesh, fmt, self.world_axes())
             self._mesh_cache = {k: v for k, v in self._mesh_cache.items() if k[0] == version}
-            self._mesh_cache[(version, fmt)] = data
+            self._mesh_cache[(version, fmt, detail)] = data
         return data, version
 
     def world_axes(self) -> WorldAxes:

@@ -3,12 +3,14 @@ synthetic capture streams into a real server."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 from browser import CHROMIUM_MISSING, headless_chromium, screenshot, viewer_value
 from srvutil import TINY, make_scene, wait_until
 
@@ -75,6 +77,25 @@ def test_latest_frame_routes(server_factory):
     srv2 = server_factory(data_dir=srv.settings.data_dir)
     again = srv2.api.http.get(f"/sessions/{sid}/frames/latest", headers=auth)
     assert again.status_code == 200 and again.json() == info
+
+
+def test_preview_mesh_is_coarser_and_labelled(server_factory):
+    srv = server_factory()
+    scene = make_scene(4, seed=2)
+    sid, token = srv.api.create(config={**TINY, "mesh_res": 8, "voxel_size_m": 0.1}, mode="offline")
+    auth = srv.api.auth(token)
+    for message in scene.messages:
+        assert srv.api.post_frame(sid, token, message).status_code == 202
+    srv.api.http.post(f"/sessions/{sid}/finish", headers=auth).raise_for_status()
+    full = srv.api.http.get(f"/sessions/{sid}/mesh", headers=auth)
+    preview = srv.api.http.get(f"/sessions/{sid}/mesh", params={"detail": "preview"}, headers=auth)
+    assert full.status_code == preview.status_code == 200
+    assert preview.headers["x-map-version"] == full.headers["x-map-version"]
+    assert preview.headers["etag"] != full.headers["etag"]
+    faces = [trimesh.load(io.BytesIO(r.content), file_type="ply").faces.shape[0] for r in (full, preview)]
+    assert 0 < faces[1] < faces[0] / 2, faces  # 4 samples per 10 cm voxel edge against 8
+    bad = srv.api.http.get(f"/sessions/{sid}/mesh", params={"detail": "max"}, headers=auth)
+    assert bad.status_code == 422 and bad.json()["field"] == "detail"
 
 
 def _scene_region(image: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Query, Request, Response
 
 from voxfusion.proto.schemas import ErrorOut
 
-from ...outputs import MESH_MEDIA_TYPES, VOXEL_MEDIA_TYPES
+from ...outputs import MESH_MEDIA_TYPES, VOXEL_MEDIA_TYPES, MeshDetail
 from ..deps import ManagerDep, SessionIdDep
 
 __all__ = ["router"]
@@ -17,8 +17,9 @@ router = APIRouter(tags=["map"], responses={401: {"model": ErrorOut}, 403: {"mod
                                             404: {"model": ErrorOut}, 409: {"model": ErrorOut}})
 
 
-def _file_response(request: Request, data: bytes, version: int, media_type: str, filename: str) -> Response:
-    etag = f'"v{version}-{len(data)}"'
+def _file_response(request: Request, data: bytes, version: int, media_type: str, filename: str,
+                   variant: str = "") -> Response:
+    etag = f'"v{version}{variant}-{len(data)}"'
     headers = {"ETag": etag, "X-Map-Version": str(version), "Cache-Control": "no-cache",
                "Content-Disposition": f'attachment; filename="{filename}"'}
     if request.headers.get("if-none-match") == etag:
@@ -29,11 +30,16 @@ def _file_response(request: Request, data: bytes, version: int, media_type: str,
 @router.get("/sessions/{session_id}/mesh", response_class=Response,
             responses={200: {"content": {t: {} for t in sorted(set(MESH_MEDIA_TYPES.values()))}}})
 def get_mesh(session_id: SessionIdDep, manager: ManagerDep, request: Request,
-             format: Annotated[Literal["ply", "glb", "obj"], Query(description="ply, glb or obj")] = "ply") -> Response:
-    """The mesh of the newest map with vertex colours (PLY binary, GLB, or OBJ); ``ETag`` per map version."""
-    data, version = manager.mesh_bytes(session_id, format)
+             format: Annotated[Literal["ply", "glb", "obj"], Query(description="ply, glb or obj")] = "ply",
+             detail: Annotated[MeshDetail, Query(description="full (the configured resolution) or preview (a "
+                                                             "~2.5 cm lattice, several times cheaper: for live "
+                                                             "views)")] = "full") -> Response:
+    """The mesh of the newest map with vertex colours (PLY binary, GLB, or OBJ); ``ETag`` per map version
+    and detail; ``X-Map-Version`` names the map version it was extracted from."""
+    data, version = manager.mesh_bytes(session_id, format, detail)
+    suffix = "" if detail == "full" else f"-{detail}"
     response = _file_response(request, data, version, MESH_MEDIA_TYPES[format],
-                              f"voxfusion-{session_id[:8]}-v{version}.{format}")
+                              f"voxfusion-{session_id[:8]}-v{version}{suffix}.{format}", suffix)
     frame = manager.mesh_frame(session_id, format)
     response.headers["X-Mesh-World"] = frame["world"]
     response.headers["Link"] = f'</sessions/{session_id}/mesh/frame?format={format}>; rel="describedby"'

@@ -9,6 +9,7 @@ import { SessionScene } from './scene.js';
 const STATUS_EVERY_MS = 1000;
 const TRAJECTORY_EVERY_MS = 2000;
 const MESH_EVERY_MS = 2500;
+const MESH_DUTY = 3;  // wait at least 3x as long as the last mesh took: the viewer never keeps the server busy
 const ENDED = new Set(['finished', 'failed']);
 
 const panel = new Panel(document);
@@ -57,16 +58,18 @@ class Viewer {
     this.followPoses();
   }
 
-  /** Run `task` now and then `ms` after each run ends (never two at once); errors are shown, not fatal. */
+  /** Run `task` now and then `ms` after each run ends (never two at once; longer when the task returns a
+   *  longer delay, or once the session has ended); errors are shown, not fatal. */
   every(ms, task) {
     const loop = async () => {
+      let delay = ms;
       try {
-        await task();
+        delay = Math.max(ms, (await task()) || 0);
         panel.showError('');
       } catch (e) {
         if (!(e instanceof ApiError && e.status === 409)) panel.showError(e.message);  // 409: not ready yet
       }
-      setTimeout(loop, this.ended() ? ms * 4 : ms);
+      setTimeout(loop, this.ended() ? delay * 4 : delay);
     };
     loop();
   }
@@ -105,16 +108,20 @@ class Viewer {
     if (poses.length) this.showPose(poses[poses.length - 1]);
   }
 
+  /** Load the mesh when the map changed; returns how long to wait before the next look. */
   async refreshMesh() {
-    if (!this.status || this.status.map_version === this.meshVersion) return;
+    if (!this.status || this.status.map_version === this.meshVersion) return 0;
+    const started = performance.now();
     const mesh = await this.api.mesh();
-    if (!mesh) return;
+    const wait = MESH_DUTY * (performance.now() - started);
+    if (!mesh) return wait;
     this.scene.setWorldFrame((await this.api.meshFrame()).T_world_file);
     const counts = this.scene.setMesh(mesh.bytes);
     this.meshVersion = mesh.version;
     view.meshVersion = mesh.version;
     view.meshVertices = counts.vertices;
-    panel.setExtra('mesh', `${counts.faces.toLocaleString()} triangles (map v${mesh.version})`);
+    panel.setExtra('mesh', `${counts.faces.toLocaleString()} triangles, preview (map v${mesh.version})`);
+    return wait;
   }
 
   showPose(pose) {
