@@ -1,18 +1,20 @@
 # The two commands a new user needs: `make demo` and `make test`. Both set everything up first.
 # `make help` lists every target; `make bench-gpu` is the GPU benchmark suite (needs a CUDA device).
-.PHONY: help setup demo test lint bench bench-gpu clean
+.PHONY: help setup demo test lint bench bench-gpu viewer clean
 
 VENV := .venv
 STAMP := $(VENV)/.bootstrapped
 
 setup: $(STAMP)
 
+# Recipes are not echoed: bootstrap.sh and demo.sh print their own [bootstrap] / [demo] progress (what pip and
+# apt-get print goes to .venv/bootstrap.log).
 $(STAMP): pyproject.toml scripts/bootstrap.sh
-	bash scripts/bootstrap.sh
-	touch $(STAMP)
+	@bash scripts/bootstrap.sh
+	@touch $(STAMP)
 
 demo: $(STAMP)
-	VENV=$(VENV) bash scripts/demo.sh
+	@VENV=$(VENV) bash scripts/demo.sh
 
 test: $(STAMP)
 	$(VENV)/bin/python -m pytest -q
@@ -26,11 +28,18 @@ lint: $(STAMP)
 bench-gpu: $(STAMP)
 	$(VENV)/bin/python bench/gpu_suite.py
 
+# The live web viewer (server/viewer: three.js bundled by vite). Its build, server/viewer/dist, is committed so the
+# server needs no Node.js; rebuild it after changing the viewer's sources (needs Node.js >= 20.19 and npm).
+viewer: $(STAMP)
+	@cd server/viewer && npm ci --no-audit --no-fund --loglevel=error >/dev/null && npx vite build --logLevel warn
+	@$(VENV)/bin/python -c 'from voxfusion.server.viewer_assets import write_build_info as w; print("[viewer] built; wrote", w())'
+
 help:
 	@echo "make demo       set up, start the server, stream a synthetic capture, print ATE and fps"
 	@echo "make test       set up, run the test suite (CPU only)"
 	@echo "make lint       ruff check ."
 	@echo "make bench-gpu  GPU benchmark suite -> bench/results/gpu-<gpu>.json (needs CUDA; up to ~20 min)"
+	@echo "make viewer     rebuild the live web viewer (server/viewer/dist; needs Node.js and npm)"
 	@echo "make setup      create .venv and install everything (the other targets do it first)"
 	@echo "make clean      remove .venv and build files"
 

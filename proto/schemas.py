@@ -152,12 +152,24 @@ class SessionList(_Model):
 
 
 class FrameAccepted(_Model):
-    """Answer to a posted frame: it is recorded durably (on disk) before this is sent."""
+    """Answer to a posted frame: it is recorded durably (on disk) before this is sent.
+
+    A frame whose ``seq`` the session already recorded is a duplicate (a retry, or a sender reusing a
+    number): it is acknowledged with ``duplicate: true, action: "ignored"`` and neither recorded nor
+    tracked again; the copy recorded first stands, even when the bytes differ, so a retry can never add
+    or change a frame of the recording.
+    """
 
     seq: int = Field(ge=0)
     """The frame header's ``seq``."""
     session: str
     """Session id the frame was filed under."""
+    duplicate: bool | None = None
+    """``True`` when a frame with this ``seq`` was already recorded for the session. ``None``: not
+    reported (answers of the zenoh bridge, which acknowledges a duplicate like a new frame)."""
+    action: Literal["recorded", "ignored"] | None = None
+    """What happened to this frame: ``recorded`` (appended to the recording, queued for tracking) or
+    ``ignored`` (a duplicate: the recording is unchanged). ``None`` exactly when ``duplicate`` is."""
 
 
 class PoseOut(_Model):

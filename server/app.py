@@ -15,6 +15,7 @@ from typing import Any
 
 from fastapi import FastAPI
 from starlette.concurrency import run_in_threadpool
+from starlette.routing import Router
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from voxfusion import __version__
@@ -22,7 +23,7 @@ from voxfusion import __version__
 from .api import ROUTERS
 from .errors import PayloadTooLargeError, install_exception_handlers
 from .manager import SessionManager
-from .metrics import HttpStats
+from .metrics import HttpStats, route_template
 from .settings import ServerSettings
 
 __all__ = ["create_app", "BodySizeLimit", "start_zenoh_bridge"]
@@ -92,16 +93,26 @@ async def _json_response(send: Send, status: int, body: dict[str, Any]) -> None:
 
 
 class _HttpMetrics:
-    """ASGI middleware counting requests by method, route template and status."""
+    """ASGI middleware timing HTTP requests and counting WebSocket connections by route template
+    (:func:`~voxfusion.server.metrics.route_template`, matched against the routes ``router`` has at the time,
+    so routes and mounts added after the app is built count too)."""
 
-    def __init__(self, app: ASGIApp, stats: HttpStats) -> None:
+    def __init__(self, app: ASGIApp, stats: HttpStats, router: Router) -> None:
         self.app = app
         self.stats = stats
+        self.router = router
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "websocket":
+            route = route_template(self.router.routes, scope)
+            self.stats.websockets.labels(route).inc()
+            with self.stats.websockets_open.labels(route).track_inprogress():
+                await self.app(scope, receive, send)
+            return
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        route = route_template(self.router.routes, scope)  # before the app runs: mounts rewrite the scope's paths
         status = 500
         t0 = time.perf_counter()
 
@@ -114,9 +125,7 @@ class _HttpMetrics:
         try:
             await self.app(scope, receive, send_wrapper)
         finally:
-            route = scope.get("route")
-            path = getattr(route, "path", None) or "(unmatched)"
-            self.stats.observe(scope.get("method", ""), path, status, time.perf_counter() - t0)
+            self.stats.observe(scope.get("method", ""), route, status, time.perf_counter() - t0)
 
 
 def start_zenoh_bridge(settings: ServerSettings, manager: SessionManager) -> Any:  # noqa: ANN401 - optional module
@@ -174,5 +183,5 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     for router in ROUTERS:
         app.include_router(router)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_frame_bytes)
-    app.add_middleware(_HttpMetrics, stats=app.state.http_stats)
+    app.add_middleware(_HttpMetrics, stats=app.state.http_stats, router=app.router)
     return app

@@ -14,7 +14,7 @@ part             content
 ``metadata``     JSON object (below), required
 ``depth``        16-bit greyscale PNG (millimetres), or raw little-endian float16 / float32 metres, or a
                  zstd payload of the frame format; required
-``color``        JPEG or PNG (RGB), any size with the depth's aspect ratio; optional
+``color``        JPEG or PNG (RGB), any size with the intrinsics' (and depth's) aspect ratio; optional
 ``confidence``   8-bit greyscale PNG or raw bytes (one per depth pixel), levels 0/1/2; optional
 ===============  =====================================================================================
 
@@ -22,10 +22,27 @@ part             content
 (``{fx, fy, cx, cy, width, height}``: pixels, for the stated resolution, required), ``depth_encoding``
 (``png16_mm`` | ``raw_f16_m`` | ``raw_f32_m`` | ``zstd_u16_mm`` | ``zstd_f16_m``; default ``png16_mm``
 for a PNG part), ``depth_width`` / ``depth_height`` (required unless the depth is a PNG),
-``color_encoding`` (``jpeg`` | ``png``; default from the bytes), ``confidence_encoding`` (``png8`` |
-``raw_u8`` | ``zstd_u8``; default from the bytes), ``confidence_levels`` (``0-2`` default, or ``0-255``),
+``color_width`` / ``color_height`` (optional), ``color_encoding`` (``jpeg`` | ``png``; default from the
+bytes), ``confidence_encoding`` (``png8`` | ``raw_u8`` | ``zstd_u8``; default from the bytes),
+``confidence_levels`` (``0-2`` default, or ``0-255``),
 ``device_pose`` (``{"convention": "opencv" | "arkit", "matrix": 16 numbers row-major camera-to-world}``),
 ``session`` (optional; must be the URL's session).
+
+Sizes are checked against what the upload declares before anything is packed, and a mismatch is refused
+with :class:`~voxfusion.core.errors.ValidationError` (422) naming the part, never rescaled to fit:
+
+* ``depth``: the image (PNG header, or the byte count of a raw payload) is exactly ``depth_width`` x
+  ``depth_height`` when those are given, and has the aspect ratio of the intrinsics' ``width`` x
+  ``height`` (within 1 %);
+* ``color``: exactly ``color_width`` x ``color_height`` when given, and the aspect ratio of the intrinsics
+  and of the depth;
+* ``confidence``: exactly the depth's size (PNG header, raw byte count, zstd content size).
+
+What the binary frame format allows (``proto/README.md`` §2, §3.2, §4) stays allowed, so both bodies take
+the same frames: intrinsics may be stated for another resolution of the same aspect ratio (ARKit's
+1920x1440 with 256x192 depth; they are scaled exactly, §4), and colour may be larger or smaller than the
+depth at the same aspect ratio (640x480 with 256x192 depth); the decoder resizes it to the depth's size
+(§3.2). Malformed metadata and corrupt images stay 400, unknown encodings 415.
 """
 
 from __future__ import annotations
@@ -38,10 +55,11 @@ from typing import Any
 import zstandard
 from PIL import Image, UnidentifiedImageError
 
+from voxfusion.core.errors import ValidationError
 from voxfusion.proto import DEPTH_ENCODINGS, FrameDecodeError, FrameHeader, read_header
 from voxfusion.proto.codecs import DEPTH_UNITS
 from voxfusion.proto.container import Payloads, pack_message
-from voxfusion.proto.frame_codec import DecodeLimits
+from voxfusion.proto.frame_codec import ASPECT_TOLERANCE, DecodeLimits
 
 from .errors import PayloadTooLargeError
 
@@ -50,7 +68,9 @@ __all__ = ["UploadPart", "MULTIPART_DEPTH_ENCODINGS", "check_message_limits", "m
 MULTIPART_DEPTH_ENCODINGS = ("png16_mm", "raw_f16_m", "raw_f32_m", "zstd_u16_mm", "zstd_f16_m")
 """Depth encodings a multipart ``depth`` part may use (``raw_f16_m`` is wrapped into ``zstd_f16_m``)."""
 _METADATA_KEYS = {"seq", "timestamp_s", "intrinsics", "depth_encoding", "depth_width", "depth_height",
-                  "color_encoding", "confidence_encoding", "confidence_levels", "device_pose", "session"}
+                  "color_encoding", "color_width", "color_height", "confidence_encoding", "confidence_levels",
+                  "device_pose", "session"}
+_BYTES_PER_PIXEL = {"raw_f16_m": 2, "raw_f32_m": 4, "zstd_u16_mm": 2, "zstd_f16_m": 2, "raw_u8": 1, "zstd_u8": 1}
 _PNG = b"\x89PNG\r\n\x1a\n"
 _JPEG = b"\xff\xd8\xff"
 _UNLIMITED = DecodeLimits(max_width=1 << 16, max_height=1 << 16)
@@ -120,6 +140,47 @@ def _parse_metadata(raw: bytes | str) -> dict[str, Any]:
     return meta
 
 
+def _declared_size(meta: dict[str, Any], part: str) -> tuple[int, int] | None:
+    """``(<part>_width, <part>_height)`` from the metadata, ``None`` when neither is given."""
+    if meta.get(f"{part}_width") is None and meta.get(f"{part}_height") is None:
+        return None
+    return _int_key(meta, f"{part}_width", part), _int_key(meta, f"{part}_height", part)
+
+
+def _intrinsics_size(meta: dict[str, Any]) -> tuple[int, int] | None:
+    """The resolution the intrinsics are stated for; ``None`` when it is malformed (the decoder says so, 400)."""
+    intr = meta.get("intrinsics")
+    if not isinstance(intr, dict):
+        return None
+    w, h = intr.get("width"), intr.get("height")
+    if any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in (w, h)):
+        return None
+    return w, h
+
+
+def _same_aspect(w1: int, h1: int, w2: int, h2: int) -> bool:
+    """The binary format's rule (``proto/README.md`` §5): width/height ratios within 1 %."""
+    return abs(w1 / h1 - w2 / h2) <= ASPECT_TOLERANCE * (w2 / h2)
+
+
+def _check_byte_count(data: bytes, enc: str, w: int, h: int, field: str) -> None:
+    """A raw payload holds exactly ``w*h`` pixels; a zstd one too when its frame states its content size."""
+    n = _BYTES_PER_PIXEL.get(enc)
+    if n is None:
+        return
+    size = len(data)
+    if enc.startswith("zstd_"):
+        try:
+            size = zstandard.frame_content_size(data)
+        except zstandard.ZstdError:
+            return  # not a zstd frame: the decoder refuses it (400)
+        if size < 0:
+            return  # size not in the frame header: the decoder checks the decompressed size
+    if size != n * w * h:
+        what = "decompresses to" if enc.startswith("zstd_") else "is"
+        raise ValidationError(field, f"{enc} payload {what} {size} bytes, but {w}x{h} pixels need {n * w * h}")
+
+
 def _depth_payload(meta: dict[str, Any], depth: UploadPart) -> tuple[bytes, dict[str, Any]]:
     sniffed = _sniff(depth.data)
     enc = meta.get("depth_encoding") or ("png16_mm" if sniffed == "png" or depth.content_type == "image/png"
@@ -132,13 +193,15 @@ def _depth_payload(meta: dict[str, Any], depth: UploadPart) -> tuple[bytes, dict
                                         f"{', '.join(MULTIPART_DEPTH_ENCODINGS)}")
     if enc == "png16_mm":
         w, h = _image_size(depth.data, "depth", "PNG")
+        declared = _declared_size(meta, "depth")
+        if declared is not None and declared != (w, h):
+            raise ValidationError("depth", f"the PNG is {w}x{h} but the metadata declares depth_width x depth_height "
+                                           f"{declared[0]}x{declared[1]}")
     else:
         w, h = _int_key(meta, "depth_width", "depth"), _int_key(meta, "depth_height", "depth")
+        _check_byte_count(depth.data, enc, w, h, "depth")
     payload = depth.data
     if enc == "raw_f16_m":
-        if len(payload) != 2 * w * h:
-            raise FrameDecodeError("depth", f"raw float16 depth of {w}x{h} must be {2 * w * h} bytes, "
-                                            f"got {len(payload)}")
         payload = zstandard.ZstdCompressor(level=1).compress(payload)
         enc = "zstd_f16_m"
     if enc not in DEPTH_ENCODINGS:  # pragma: no cover - every multipart encoding maps onto a wire one
@@ -153,6 +216,8 @@ def message_from_multipart(metadata: bytes | str, depth: UploadPart, color: Uplo
     Raises:
         FrameDecodeError: bad metadata or a part that cannot be what it claims (``field`` names it); the
             message is fully checked later by :func:`decode_frame`.
+        ValidationError: an image does not match the sizes the upload declares (module docstring; 422,
+            ``field`` is ``depth``, ``color`` or ``confidence``).
     """
     meta = _parse_metadata(metadata)
     for key in ("seq", "timestamp_s", "intrinsics"):
@@ -162,6 +227,11 @@ def message_from_multipart(metadata: bytes | str, depth: UploadPart, color: Uplo
     header: dict[str, Any] = {"session": meta.get("session"), "seq": meta["seq"], "timestamp_s": meta["timestamp_s"],
                               "intrinsics": meta["intrinsics"]}
     depth_bytes, header["depth"] = _depth_payload(meta, depth)
+    intr = _intrinsics_size(meta)
+    dw, dh = header["depth"]["width"], header["depth"]["height"]
+    if intr is not None and not _same_aspect(dw, dh, *intr):
+        raise ValidationError("depth", f"{dw}x{dh} does not have the aspect ratio of the {intr[0]}x{intr[1]} the "
+                                       "intrinsics are stated for; images are not rescaled to fit")
 
     color_bytes = b""
     header["color"] = None
@@ -172,6 +242,15 @@ def message_from_multipart(metadata: bytes | str, depth: UploadPart, color: Uplo
         if enc not in ("jpeg", "png"):
             raise FrameDecodeError("color", f"unknown encoding {enc!r}; expected one of jpeg, png")
         cw, ch = _image_size(color.data, "color", enc.upper())
+        declared = _declared_size(meta, "color")
+        if declared is not None and declared != (cw, ch):
+            raise ValidationError("color", f"the {enc.upper()} is {cw}x{ch} but the metadata declares color_width x "
+                                           f"color_height {declared[0]}x{declared[1]}")
+        if not _same_aspect(cw, ch, dw, dh) or (intr is not None and not _same_aspect(cw, ch, *intr)):
+            shown = f", intrinsics {intr[0]}x{intr[1]}" if intr is not None else ""
+            raise ValidationError("color", f"{cw}x{ch} does not have the aspect ratio of the declared sizes (depth "
+                                           f"{dw}x{dh}{shown}); colour is only resized between sizes of the same "
+                                           "aspect ratio")
         color_bytes = color.data
         header["color"] = {"encoding": enc, "width": cw, "height": ch}
 
@@ -179,6 +258,12 @@ def message_from_multipart(metadata: bytes | str, depth: UploadPart, color: Uplo
     header["confidence"] = None
     if confidence is not None and confidence.data:
         enc = meta.get("confidence_encoding") or ("png8" if _sniff(confidence.data) == "png" else "raw_u8")
+        if enc == "png8" and _sniff(confidence.data) == "png":
+            qw, qh = _image_size(confidence.data, "confidence", "PNG")
+            if (qw, qh) != (dw, dh):
+                raise ValidationError("confidence", f"the PNG is {qw}x{qh}; confidence must be the depth's {dw}x{dh}")
+        else:
+            _check_byte_count(confidence.data, enc, dw, dh, "confidence")
         conf_bytes = confidence.data
         header["confidence"] = {"encoding": enc, "levels": meta.get("confidence_levels", "0-2")}
 

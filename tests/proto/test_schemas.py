@@ -99,6 +99,9 @@ def test_status_pose_trajectory_error_serialise_to_json():
     assert json.loads(traj.model_dump_json())["poses"][0]["convention"] == "opencv"
     assert _loc({"seq": 0, "timestamp_s": 0.0, "T_world_cam": np.diag([1.0, 1, 1, 2]).tolist()}, PoseOut) == (
         "T_world_cam",)
-    assert FrameAccepted(seq=4, session="a1").model_dump() == {"seq": 4, "session": "a1"}
+    assert FrameAccepted(seq=4, session="a1").model_dump() == {"seq": 4, "session": "a1", "duplicate": None,
+                                                               "action": None}
+    assert FrameAccepted(seq=4, session="a1", duplicate=True, action="ignored").duplicate is True
+    assert _loc({"seq": 4, "session": "a", "action": "re-recorded"}, FrameAccepted) == ("action",)
     assert _loc({"seq": -1, "session": "a"}, FrameAccepted) == ("seq",)
     assert ErrorOut(detail="crc: mismatch", field="crc").model_dump() == {"detail": "crc: mismatch", "field": "crc"}

@@ -160,12 +160,13 @@ def test_multipart_frames_are_accepted_and_checked(session, scene):
     np.testing.assert_allclose(by_seq[51].depth_m, frame.depth_m, rtol=1e-3)
     assert by_seq[50].color.shape == (h, w, 3)
     np.testing.assert_allclose(by_seq[51].T_world_cam_device[:3, 3], [0.1, 0.2, 0.3])
-    # refusals: corrupt PNG, colour of another aspect ratio, raw depth of the wrong size, NaN metadata
+    # refusals: corrupt PNG (400), colour of another aspect ratio and raw depth of the wrong size (422: they do
+    # not match the declared sizes, see test_multipart_sizes.py), NaN metadata (400)
     bad = [
         ({"depth": ("d.png", depth_png[:40], "image/png")}, meta, 400, "depth"),
         ({"depth": ("d.png", depth_png, "image/png"),
-          "color": ("c.jpg", jpeg(np.zeros((50, 50, 3), np.uint8)), "image/jpeg")}, meta, 400, "color"),
-        ({"depth": ("d.bin", b"\0" * 10, "application/octet-stream")}, meta2, 400, "depth"),
+          "color": ("c.jpg", jpeg(np.zeros((50, 50, 3), np.uint8)), "image/jpeg")}, meta, 422, "color"),
+        ({"depth": ("d.bin", b"\0" * 10, "application/octet-stream")}, meta2, 422, "depth"),
         ({"depth": ("d.png", depth_png, "image/png")}, None, 400, "header"),
     ]
     for files, m, status, field in bad:

@@ -7,9 +7,14 @@ Body, either
 * ``multipart/form-data`` with parts ``metadata`` (JSON), ``depth``, optional ``color`` and
   ``confidence`` (see :mod:`voxfusion.server.ingest`).
 
-Answer 202 ``{"seq", "session"}`` once the frame is durably in the session's recording (fdatasync). A
-frame whose ``seq`` is already recorded is acknowledged again (``X-Duplicate: true``) without being
-recorded twice, so retries are safe.
+Answer 202 ``{"seq", "session", "duplicate": false, "action": "recorded"}`` once the frame is durably in
+the session's recording (fdatasync). A frame whose ``seq`` is already recorded (by either body kind) is
+acknowledged with ``{"duplicate": true, "action": "ignored"}`` and ``X-Duplicate: true``: it is neither
+recorded nor tracked again, the first copy stands (even when the bytes differ), so retries are safe.
+
+A multipart upload whose images do not match the sizes it declares (``intrinsics`` width and height,
+``depth_width`` / ``depth_height``, ``color_width`` / ``color_height``) is refused with 422 naming the part
+(``depth``, ``color``, ``confidence``); see :mod:`voxfusion.server.ingest`.
 """
 
 from __future__ import annotations
@@ -42,11 +47,15 @@ _OPENAPI_BODY = {
                 "properties": {
                     "metadata": {"type": "string", "description": "JSON: seq, timestamp_s, intrinsics "
                                  "{fx, fy, cx, cy, width, height}, depth_encoding, depth_width, depth_height, "
-                                 "device_pose {convention, matrix}, ..."},
+                                 "color_width, color_height, device_pose {convention, matrix}, ..."},
                     "depth": {"type": "string", "format": "binary",
-                              "description": "16-bit PNG (mm) or raw float16 / float32 metres"},
-                    "color": {"type": "string", "format": "binary", "description": "JPEG or PNG"},
-                    "confidence": {"type": "string", "format": "binary", "description": "PNG8 or raw u8"},
+                              "description": "16-bit PNG (mm) or raw float16 / float32 metres, with the "
+                                             "intrinsics' aspect ratio"},
+                    "color": {"type": "string", "format": "binary",
+                              "description": "JPEG or PNG with the intrinsics' aspect ratio (resized to the depth's "
+                                             "size, as in the binary format)"},
+                    "confidence": {"type": "string", "format": "binary",
+                                   "description": "PNG8 or raw u8 at the depth's size"},
                 }}},
         },
     }
@@ -65,7 +74,8 @@ async def _part(form: object, name: str) -> UploadPart | None:
 @router.post("/sessions/{session_id}/frames", status_code=status.HTTP_202_ACCEPTED, response_model=FrameAccepted,
              openapi_extra=_OPENAPI_BODY,
              responses={400: {"model": ErrorOut}, 409: {"model": ErrorOut}, 413: {"model": ErrorOut},
-                        415: {"model": ErrorOut}, 429: {"model": ErrorOut}, 503: {"model": ErrorOut}})
+                        415: {"model": ErrorOut}, 422: {"model": ErrorOut}, 429: {"model": ErrorOut},
+                        503: {"model": ErrorOut}})
 async def post_frame(session_id: SessionIdDep, manager: ManagerDep, request: Request,
                      response: Response) -> FrameAccepted:
     """Record one frame durably and queue it for tracking; 202 with its ``seq`` once it is on disk."""
@@ -89,4 +99,5 @@ async def post_frame(session_id: SessionIdDep, manager: ManagerDep, request: Req
     seq, duplicate = await run_in_threadpool(manager.submit_frame, session_id, data)
     if duplicate:
         response.headers["X-Duplicate"] = "true"
-    return FrameAccepted(seq=seq, session=session_id)
+    return FrameAccepted(seq=seq, session=session_id, duplicate=duplicate,
+                         action="ignored" if duplicate else "recorded")
