@@ -73,7 +73,7 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
 
 
 def compute_losses(out: RenderOutput, depth_gt: torch.Tensor, color_gt: torch.Tensor | None,
-                   config: LossConfig | None = None) -> LossTerms:
+                   config: LossConfig | None = None, color_valid: torch.Tensor | None = None) -> LossTerms:
     """Loss terms for rendered rays.
 
     Args:
@@ -81,6 +81,8 @@ def compute_losses(out: RenderOutput, depth_gt: torch.Tensor, color_gt: torch.Te
         depth_gt: ``[N]`` ground-truth depth in t-units (camera z-depth metres), 0 = invalid.
         color_gt: ``[N, 3]`` ground-truth RGB in [0, 1], or None (no colour term).
         config: weights.
+        color_valid: ``[N]`` bool, rays whose ``color_gt`` is real (rays from frames without a colour image
+            carry zeros there), or None: every ray's.
 
     Returns:
         :class:`LossTerms`; the colour term is 0 when ``color_gt`` or ``out.color`` is None.
@@ -99,7 +101,7 @@ def compute_losses(out: RenderOutput, depth_gt: torch.Tensor, color_gt: torch.Te
         if color_gt.shape != (n, 3):
             raise ShapeError("color_gt", tuple(color_gt.shape), f"({n}, 3)")
         err = (out.color - color_gt.to(out.color.device, out.color.dtype)).abs().mean(-1)
-        color = _masked_mean(err, hit)
+        color = _masked_mean(err, hit if color_valid is None else hit & color_valid.to(hit.device))
 
     depth = _masked_mean((out.depth - torch.where(valid_d, depth_gt, out.depth.detach())).abs(), valid_d)
 

@@ -150,6 +150,23 @@ def _backproject(frame: FrameData, T_world_cam: torch.Tensor, stride: int) -> to
     return pts @ T[:3, :3].T + T[:3, 3]
 
 
+def _window_colors(colors: list[torch.Tensor | None], depths: list[torch.Tensor]
+                   ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """The window's ray colours ``[N, 3]`` and which rays have one (``[N]`` bool; ``None`` when all do).
+
+    Captures that photograph only some frames (3D Scanner App: every third) put frames with and without
+    colour in one window: their rays keep the colour term, the others carry zeros masked out of it.
+    ``(None, None)`` when no frame of the window has colour."""
+    if all(c is None for c in colors):
+        return None, None
+    if all(c is not None for c in colors):
+        return torch.cat(colors), None  # type: ignore[arg-type]
+    filled = [c if c is not None else d.new_zeros((d.shape[0], 3)) for c, d in zip(colors, depths, strict=True)]
+    valid = [torch.full((d.shape[0],), c is not None, dtype=torch.bool, device=d.device)
+             for c, d in zip(colors, depths, strict=True)]
+    return torch.cat(filled), torch.cat(valid)
+
+
 def keyframe_color_views(keyframes: list[Keyframe] | tuple[Keyframe, ...]) -> list[ColorView]:
     """The keyframes' colour images at their current poses, for mesh colours (none for depth-only maps)."""
     return [ColorView(kf.data.color, kf.data.depth_m, kf.data.K, kf.T_world_cam.clone())
@@ -297,12 +314,12 @@ class Mapper:
         o = torch.cat(origins)
         d = torch.cat(dirs)
         depth_gt = torch.cat(depth)
-        color_gt = torch.cat(color) if all(c is not None for c in color) else None
+        color_gt, color_valid = _window_colors(color, depth)
         t_far = depth_gt + self.render_config.truncation_m
         out = render_rays(self.voxels, self.decoder, o, d, self.render_config, training=True,
                           generator=self.generator, t_far=t_far)
         terms = compute_losses(out, depth_gt, color_gt if self.field_config.use_color else None,
-                               self.loss_config)
+                               self.loss_config, color_valid)
         self.optimizer.zero_grad(set_to_none=True)
         if pose_opt is not None:
             pose_opt.zero_grad(set_to_none=True)

@@ -11,7 +11,13 @@ scannet      ``color/``, ``depth/`` and ``intrinsic/``           :class:`ScanNet
 tum          ``rgb.txt`` and ``depth.txt``                       :class:`TUMCapture`
 sevenscenes  ``frame-XXXXXX.pose.txt`` files                     :class:`SevenScenesCapture`
 replica      ``results/`` and ``traj.txt``                       :class:`ReplicaCapture`
+scanner3d    ``frame_XXXXX.json`` files (3D Scanner App)         :class:`Scanner3DCapture`
+polycam      ``keyframes/`` (Polycam raw data)                   :class:`PolycamCapture`
 ============ =================================================== ==========================
+
+The iPhone-app layouts are recognised by their marker alone (``frame_*.json``, ``keyframes/``), so a broken
+export (no depth, a JSON without its pose, mismatched file counts) reaches its reader, which names what is
+wrong, instead of being reported as an unknown layout.
 
 Our synthetic generator writes the TUM or the Replica layout, so it needs no format of its own.
 """
@@ -25,8 +31,10 @@ from typing import Literal
 
 from ..errors import CaptureError, CaptureFormatError, ValidationError
 from .frame import Capture
+from .polycam import PolycamCapture, looks_like_polycam
 from .record3d import Record3DCapture
 from .replica import ReplicaCapture
+from .scanner3d import Scanner3DCapture, looks_like_scanner3d
 from .scannet import ScanNetCapture
 from .sevenscenes import SevenScenesCapture
 from .stray import StrayCapture
@@ -35,7 +43,8 @@ from .tum import TUMCapture
 
 __all__ = ["CaptureFormat", "CAPTURE_FORMATS", "detect_format", "open_capture"]
 
-CaptureFormat = Literal["record3d", "stray", "scannet", "tum", "sevenscenes", "replica", "recording"]
+CaptureFormat = Literal["record3d", "stray", "scannet", "tum", "sevenscenes", "replica", "scanner3d", "polycam",
+                        "recording"]
 
 def _recording(path: Path) -> Capture:
     """A server session recording (frame containers); the reader lives with the wire format."""
@@ -51,6 +60,8 @@ CAPTURE_FORMATS: dict[str, tuple[str, Callable[..., Capture]]] = {
     "tum": ("rgb.txt + depth.txt (TUM RGB-D)", TUMCapture),
     "sevenscenes": ("frame-000000.pose.txt ... (7-Scenes)", SevenScenesCapture),
     "replica": ("results/ + traj.txt (Replica, NICE-SLAM release)", ReplicaCapture),
+    "scanner3d": ("frame_00000.json + depth_00000.png ... (3D Scanner App 'All Data' export)", Scanner3DCapture),
+    "polycam": ("keyframes/ with cameras/, images/, depth/ (Polycam raw-data export)", PolycamCapture),
     "recording": ("recording.vxr / *.vxr (a voxfusion server session's recording)", _recording),
 }
 """Format name -> (layout description, reader)."""
@@ -87,6 +98,10 @@ def detect_format(path: str | Path) -> CaptureFormat:
             return "sevenscenes"
         if (path / "results").is_dir() and has("traj.txt"):
             return "replica"
+        if looks_like_scanner3d(path):
+            return "scanner3d"
+        if looks_like_polycam(path):
+            return "polycam"
         if _single_r3d(path) is not None:
             return "record3d"
         if has("recording.vxr") or next(path.glob("*.vxr"), None) is not None:
@@ -106,7 +121,7 @@ def open_capture(path: str | Path, format: CaptureFormat | None = None, *, start
         limit: at most this many frames (after ``start`` and ``stride``); ``None`` = all.
         stride: use every ``stride``-th frame.
         **reader_kwargs: passed to the reader (e.g. ``intrinsics="fr2"`` for TUM,
-            ``confidence_threshold=None`` for Stray).
+            ``confidence_threshold=None`` for Stray, ``corrected=False`` for Polycam).
 
     Returns:
         A lazy :class:`Capture`; a :class:`SlicedCapture` view when ``start``/``limit``/``stride``

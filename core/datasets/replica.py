@@ -31,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CaptureError, CaptureFormatError, ValidationError
+from ..errors import CaptureFormatError, ValidationError
 from ..geometry import check_rigid, make_intrinsics
+from .checks import check_depth_size, require_dir
 from .frame import BaseCapture, RGBDFrame
 from .images import (
     image_size,
@@ -84,9 +85,7 @@ class ReplicaCapture(BaseCapture):
 
     def __init__(self, path: str | Path, K: np.ndarray | tuple[float, float, float, float] | None = None,
                  depth_scale: float | None = None, *, frame_rate_hz: float = 30.0) -> None:
-        root = Path(path)
-        if not root.is_dir():
-            raise CaptureError(root, "Replica scene folder not found")
+        root = require_dir(path, "Replica scene folder")
         if not frame_rate_hz > 0:
             raise ValidationError("frame_rate_hz", f"must be > 0, got {frame_rate_hz}")
         self.path = root
@@ -165,12 +164,9 @@ class ReplicaCapture(BaseCapture):
     def _load(self, i: int) -> RGBDFrame:
         fid = self._ids[i]
         depth_path = self._depth_path(i)
-        depth_m = read_depth_png(depth_path, self.depth_scale)
-        if depth_m.shape != (self.height, self.width):
-            raise CaptureFormatError(
-                depth_path,
-                f"depth is {depth_m.shape[1]}x{depth_m.shape[0]}, the scene is {self.width}x{self.height}",
-            )
+        depth_m = check_depth_size(
+            read_depth_png(depth_path, self.depth_scale), self.width, self.height, depth_path, "scene"
+        )
         color_path = self.path / "results" / f"frame{fid:06d}.jpg"
         if not color_path.is_file() and (alt := color_path.with_suffix(".png")).is_file():
             color_path = alt

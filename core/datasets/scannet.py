@@ -20,7 +20,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import CaptureError, CaptureFormatError
+from ..errors import CaptureFormatError
+from .checks import check_depth_size, require_dir
 from .frame import BaseCapture, RGBDFrame
 from .images import (
     image_size,
@@ -53,9 +54,7 @@ class ScanNetCapture(BaseCapture):
     """
 
     def __init__(self, path: str | Path) -> None:
-        root = Path(path)
-        if not root.is_dir():
-            raise CaptureError(root, "ScanNet export folder not found")
+        root = require_dir(path, "ScanNet export folder")
         self.path = root
         self.name = root.name if root.name != "export" else root.parent.name
         for sub in ("color", "depth", "pose"):
@@ -88,12 +87,7 @@ class ScanNetCapture(BaseCapture):
 
     def _load(self, i: int) -> RGBDFrame:
         depth_path = self._path("depth", i, "png")
-        depth_m = read_depth_png(depth_path, 1000.0)
-        if depth_m.shape != (self.height, self.width):
-            raise CaptureFormatError(
-                depth_path,
-                f"depth is {depth_m.shape[1]}x{depth_m.shape[0]}, the scene is {self.width}x{self.height}",
-            )
+        depth_m = check_depth_size(read_depth_png(depth_path, 1000.0), self.width, self.height, depth_path, "scene")
         color = resize_color(read_color(self._path("color", i, "jpg")), self.width, self.height)
         return RGBDFrame(
             depth_m=depth_m, K=self.K, timestamp_s=self._ids[i] / FRAME_RATE_HZ, color=color,

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..errors import CaptureError, CaptureFormatError, ValidationError
 from ..geometry import check_rigid, make_intrinsics
+from .checks import check_depth_size, require_dir
 from .frame import BaseCapture, RGBDFrame
 from .images import (
     image_size,
@@ -77,9 +78,7 @@ class SevenScenesCapture(BaseCapture):
     """
 
     def __init__(self, path: str | Path, K: np.ndarray | None = None) -> None:
-        root = Path(path)
-        if not root.is_dir():
-            raise CaptureError(root, "7-Scenes sequence folder not found")
+        root = require_dir(path, "7-Scenes sequence folder")
         self.path = root
         self.name = root.name if not root.name.startswith("seq-") else f"{root.parent.name}-{root.name}"
         ids = sorted(int(m.group(1)) for p in root.iterdir() if (m := _FRAME_RE.match(p.name)))
@@ -107,12 +106,10 @@ class SevenScenesCapture(BaseCapture):
 
     def _load(self, i: int) -> RGBDFrame:
         depth_path = self._file(i, "depth.png")
-        depth_m = read_depth_png(depth_path, 1000.0, invalid_values=(65535,))
-        if depth_m.shape != (self.height, self.width):
-            raise CaptureFormatError(
-                depth_path, f"depth is {depth_m.shape[1]}x{depth_m.shape[0]}, the sequence is "
-                f"{self.width}x{self.height}"
-            )
+        depth_m = check_depth_size(
+            read_depth_png(depth_path, 1000.0, invalid_values=(65535,)), self.width, self.height, depth_path,
+            "sequence",
+        )
         color_path = self._file(i, "color.jpg")
         if not color_path.is_file():
             if not self._file(i, "color.png").is_file():

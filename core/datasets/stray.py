@@ -33,8 +33,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..errors import CaptureError, CaptureFormatError, ValidationError
+from ..errors import CaptureError, CaptureFormatError
 from ..geometry import pose_from_tum, scale_intrinsics
+from .checks import apply_confidence, check_confidence_threshold, check_depth_size, require_dir
 from .frame import BaseCapture, RGBDFrame
 from .images import (
     image_size,
@@ -177,16 +178,10 @@ class StrayCapture(BaseCapture):
     """
 
     def __init__(self, path: str | Path, confidence_threshold: int | None = 1) -> None:
-        root = Path(path)
-        if not root.is_dir():
-            raise CaptureError(root, "Stray Scanner capture folder not found")
-        if confidence_threshold is not None and confidence_threshold not in (0, 1, 2):
-            raise ValidationError(
-                "confidence_threshold", f"must be 0, 1, 2 or None, got {confidence_threshold}"
-            )
+        root = require_dir(path, "Stray Scanner capture folder")
+        self.confidence_threshold = check_confidence_threshold(confidence_threshold)
         self.path = root
         self.name = root.name
-        self.confidence_threshold = confidence_threshold
         self._timestamps_s, self._ids, self._poses = _read_odometry(root / "odometry.csv")
         if not (root / "depth").is_dir():
             raise CaptureFormatError(root / "depth", "depth folder not found")
@@ -234,21 +229,11 @@ class StrayCapture(BaseCapture):
             depth_m = read_depth_png(depth_path, 1000.0)
         else:
             depth_m = read_depth_npy(depth_path)
-        if depth_m.shape != (self.height, self.width):
-            raise CaptureFormatError(
-                depth_path, f"depth is {depth_m.shape[1]}x{depth_m.shape[0]}, the capture is "
-                f"{self.width}x{self.height}"
-            )
+        check_depth_size(depth_m, self.width, self.height, depth_path)
         conf_path = self.path / "confidence" / f"{self._ids[i]:06d}.png"
-        confidence = read_confidence(conf_path) if conf_path.is_file() else None
-        if confidence is not None:
-            if confidence.shape != depth_m.shape:
-                raise CaptureFormatError(
-                    conf_path, f"confidence is {confidence.shape[1]}x{confidence.shape[0]}, depth is "
-                    f"{self.width}x{self.height}"
-                )
-            if self.confidence_threshold is not None:
-                depth_m[confidence < self.confidence_threshold] = 0.0
+        confidence = None
+        if conf_path.is_file():
+            confidence = apply_confidence(depth_m, read_confidence(conf_path), self.confidence_threshold, conf_path)
         color = None
         if self._video is not None:
             color = resize_color(self._video.read(int(self._ids[i])), self.width, self.height)

@@ -46,6 +46,7 @@ from scipy.spatial.transform import Rotation
 from ..errors import CaptureError, CaptureFormatError, ValidationError
 from ..geometry import make_intrinsics
 from ..trajectory import read_tum_trajectory
+from .checks import apply_confidence, check_depth_size, require_dir
 from .frame import BaseCapture, RGBDFrame
 from .images import (
     image_size,
@@ -199,9 +200,7 @@ class TUMCapture(BaseCapture):
                  max_time_diff_s: float = 0.02,
                  gt: Literal["interpolate", "nearest", "none"] = "interpolate",
                  depth_scale: float = 5000.0, strict: bool = False) -> None:
-        root = Path(path)
-        if not root.is_dir():
-            raise CaptureError(root, "TUM sequence folder not found")
+        root = require_dir(path, "TUM sequence folder")
         if gt not in ("interpolate", "nearest", "none"):
             raise ValidationError("gt", f"must be 'interpolate', 'nearest' or 'none', got {gt!r}")
         if not max_time_diff_s > 0:
@@ -298,12 +297,9 @@ class TUMCapture(BaseCapture):
     def _load(self, i: int) -> RGBDFrame:
         t_rgb, rgb_path = self._rgb[i]
         t_depth, depth_path = self._depth[i]
-        depth_m = read_depth_png(depth_path, self.depth_scale)
-        if depth_m.shape != (self.height, self.width):
-            raise CaptureFormatError(
-                depth_path, f"depth is {depth_m.shape[1]}x{depth_m.shape[0]}, the sequence is "
-                f"{self.width}x{self.height}"
-            )
+        depth_m = check_depth_size(
+            read_depth_png(depth_path, self.depth_scale), self.width, self.height, depth_path, "sequence"
+        )
         color = read_color(rgb_path)
         if color.shape[:2] != depth_m.shape:
             raise CaptureFormatError(
@@ -312,12 +308,7 @@ class TUMCapture(BaseCapture):
             )
         confidence = None
         if (conf_path := self._confidence[i]) is not None:
-            confidence = read_confidence(conf_path)
-            if confidence.shape != depth_m.shape:
-                raise CaptureFormatError(
-                    conf_path, f"confidence is {confidence.shape[1]}x{confidence.shape[0]} but depth is "
-                    f"{self.width}x{self.height}"
-                )
+            confidence = apply_confidence(depth_m, read_confidence(conf_path), None, conf_path)
         return RGBDFrame(
             depth_m=depth_m, K=self.K, timestamp_s=t_rgb, color=color, confidence=confidence,
             T_world_cam=self._poses[i],

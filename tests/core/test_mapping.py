@@ -125,3 +125,31 @@ def test_depth_only_capture_trains_without_colour(tmp_path):
     run = map_capture(DepthOnly(), cfg, None, progress=False)
     assert run.mapper.decoder.config.use_color is False
     assert len(run.mesh.vertices) > 0
+
+
+def test_window_with_a_colourless_frame_keeps_the_colour_term_of_the_others():
+    """3D Scanner App exports photograph every third frame: a mapping window that mixes frames with and
+    without colour trains colour on the rays that have it (it used to drop the colour term entirely)."""
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=1", "mapping.iters=1",
+                                           "mapping.keyframe_max_interval=1"])
+    frames = list(SyntheticCapture(SyntheticConfig(n_frames=2, width=48, height=36)).frames())
+    frames[1] = frames[1].with_(color=None)
+    m = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu")
+    for f in frames:
+        m.integrate(frame_to_device(f, "cpu"), f.T_world_cam)
+    window = list(m.keyframes)
+    assert len(window) == 2 and window[1].data.color is None and window[0].data.color is not None
+    assert float(m.step(window).color.detach()) > 0
+    assert float(m.step(window[1:]).color.detach()) == 0  # no frame with colour: no colour term
+
+
+def test_window_colours_mask_rays_without_colour():
+    from voxfusion.core.mapping import _window_colors
+
+    depth = [torch.ones(3), torch.ones(2)]
+    rgb = torch.rand(3, 3)
+    colour, valid = _window_colors([rgb, None], depth)
+    torch.testing.assert_close(colour[:3], rgb)
+    assert colour.shape == (5, 3) and valid.tolist() == [True, True, True, False, False]
+    assert _window_colors([rgb, rgb[:2]], depth)[1] is None
+    assert _window_colors([None, None], depth) == (None, None)
