@@ -281,6 +281,11 @@ class BaseClient(ABC):
         """Wait until every frame sent with ``send_*_async`` has been answered."""
 
     # ------------------------------------------------------------------------------------ answers
+    def server_device(self) -> str | None:
+        """The torch device the server runs sessions on (``cpu``, ``cuda``) where the transport reports it
+        (HTTP: ``/healthz``); ``None`` where it does not (zenoh)."""
+        return None
+
     def status(self) -> SessionStatusOut:
         """Progress counters and state of the current session."""
         return SessionStatusOut.model_validate_json(self._query_bytes("status"))

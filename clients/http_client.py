@@ -8,6 +8,7 @@ Example::
         session = client.create_session("desk", ["tracking.iters=10"], mode="offline")
         for frame in capture.frames():
             client.send_frame_async(frame)          # pipelined, in order, backpressure at max_in_flight
+        print(client.viewer_url)                     # the live viewer page in a browser
         client.finish()
         client.download_mesh("out/mesh.ply")
         poses = client.trajectory()
@@ -21,6 +22,7 @@ from __future__ import annotations
 import time
 from concurrent.futures import Future
 from typing import Any
+from urllib.parse import quote
 
 import httpx
 
@@ -34,9 +36,9 @@ from voxfusion.proto.schemas import (
 )
 
 from .base import BaseClient, EncodeOptions, _Sender
-from .errors import ServerError, TransportError, server_error_from_body
+from .errors import ClientError, ServerError, TransportError, server_error_from_body
 
-__all__ = ["Client"]
+__all__ = ["Client", "viewer_url"]
 
 _QUERY_PATHS = {
     "status": "",
@@ -45,6 +47,21 @@ _QUERY_PATHS = {
     "mesh": "/mesh",
     "voxels": "/voxels",
 }
+
+
+def viewer_url(server_url: str, session_id: str, token: str) -> str:
+    """The live viewer page of a session: ``<server>/sessions/<id>/view?token=<token>`` (the one place this
+    link is made; ``scripts/demo.sh`` prints it through here too).
+
+    The token is part of the link (as for the pose WebSocket's ``?token=``): whoever has the link can watch
+    the session, so share it like the token itself.
+
+    Example::
+
+        viewer_url("http://127.0.0.1:8000/", "3f2a...", "tok")
+        # -> "http://127.0.0.1:8000/sessions/3f2a.../view?token=tok"
+    """
+    return f"{server_url.rstrip('/')}/sessions/{quote(session_id, safe='')}/view?token={quote(token, safe='')}"
 
 
 class Client(BaseClient):
@@ -82,6 +99,25 @@ class Client(BaseClient):
     def mesh_url(self) -> str:
         """The URL a plain ``curl -H 'Authorization: Bearer <token>'`` downloads the mesh from."""
         return f"{self.session_url}/mesh"
+
+    @property
+    def viewer_url(self) -> str:
+        """The current session's live viewer page (:func:`viewer_url`; it carries the session token)."""
+        return viewer_url(self.url, self.session.id, self.session.token)
+
+    def server_device(self) -> str:
+        """The torch device the server runs sessions on (``cpu``, ``cuda``, ...), from ``GET /healthz``.
+
+        Raises:
+            ClientError: the answer names no device (not a VoxFusion server?).
+        """
+        try:
+            device = self._request("GET", "/healthz").json().get("device")
+        except (ValueError, AttributeError):
+            device = None
+        if not isinstance(device, str) or not device:
+            raise ClientError(f"{self.url}/healthz names no device: is this a VoxFusion server?")
+        return device
 
     def _auth(self) -> dict[str, str]:
         return {"Authorization": f"Bearer {self.session.token}"}

@@ -43,8 +43,8 @@ Example::
     from voxfusion.clients.nerfcapture import run_nerfcapture_bridge
 
     client = Client("http://127.0.0.1:8000")
-    client.create_session("iphone", preset="iphone")
-    run_nerfcapture_bridge(client, domain_id=0)          # until Ctrl-C
+    run_nerfcapture_bridge(client, domain_id=0,           # until Ctrl-C; the session is created
+                           open_session=lambda: client.create_session("iphone", preset="iphone"))  # with frame 1
 """
 
 # No ``from __future__ import annotations`` here: cyclonedds resolves the IDL field annotations of
@@ -351,7 +351,8 @@ def run_nerfcapture_bridge(client: BaseClient, *, receiver: NeRFCaptureReceiver 
                            domain_id: int = DEFAULT_DOMAIN_ID, dds_config: str | None = None,
                            max_frames: int | None = None, idle_timeout_s: float | None = None,
                            stop: threading.Event | None = None, color_width: int | None = 640,
-                           on_frame: Callable[[BridgeStats], None] | None = None) -> BridgeStats:
+                           on_frame: Callable[[BridgeStats], None] | None = None,
+                           open_session: Callable[[], object] | None = None) -> BridgeStats:
     """Forward NeRFCapture samples to the client's current session until stopped.
 
     Frames are sent in arrival order with ``send_frame_async`` (at most ``client.max_in_flight`` waiting;
@@ -359,8 +360,12 @@ def run_nerfcapture_bridge(client: BaseClient, *, receiver: NeRFCaptureReceiver 
     without a sample (counted from the start, or from the last sample), when ``stop`` is set, or on
     Ctrl-C; always waits for the frames in flight.
 
+    ``open_session``: called once, just before the first frame is sent, to create the session (e.g.
+    ``lambda: client.create_session("iphone", preset="iphone")``); so a bridge no phone ever sends a frame
+    with depth to leaves no empty session on the server. ``None``: the client already has its session.
+
     Raises:
-        ServerError / TransportError: the server refused a frame or went away.
+        ServerError / TransportError: the server refused a frame (or the session) or went away.
     """
     receiver = receiver or NeRFCaptureReceiver(domain_id, dds_config)
     stats = BridgeStats()
@@ -390,6 +395,9 @@ def run_nerfcapture_bridge(client: BaseClient, *, receiver: NeRFCaptureReceiver 
                     if stats.skipped_no_depth == 1:
                         log.warning("NeRFCapture sends frames without depth (a device without LiDAR?); skipping them")
                     continue
+                if open_session is not None:
+                    open_session()
+                    open_session = None
                 pending.append(client.send_frame_async(conv.frame, color=conv.color, intrinsics=conv.intrinsics))
             while pending and pending[0].done():
                 pending.pop(0).result()

@@ -35,7 +35,7 @@ from voxfusion.proto.schemas import PoseOut
 from .base import BaseClient, poses_to_trajectory
 
 __all__ = ["StreamOptions", "StreamResult", "Pacer", "stream_frames", "stream_capture", "finish_and_download",
-           "write_session_file",
+           "write_session_file", "session_summary",
            "format_pose"]
 
 
@@ -226,6 +226,21 @@ def finish_and_download(client: BaseClient, out_dir: str | Path | None, *,
     client.download_mesh(mesh_path, format="ply")
     traj_path = write_tum_trajectory(out / "trajectory.txt", poses_to_trajectory(client.trajectory()))
     return status, mesh_path, traj_path
+
+
+def session_summary(status: SessionStatusOut) -> str:
+    """One line on what the server did with a session's frames, e.g.
+    ``session 3f2a... finished: 942 received, 310 tracked (2 lost), 632 dropped by the server, 31 keyframes,
+    2210 voxels``.
+
+    ``dropped``: frames recorded but skipped by tracking to keep up (realtime sessions; they stay in the
+    recording); ``lost``: tracked frames whose tracking failed (``frames_lost``: their pose is the motion
+    model's guess and they are not fused).
+    """
+    line = (f"session {status.id} {status.state.value}: {status.frames_received} received, "
+            f"{status.frames_tracked} tracked ({status.frames_lost} lost), {status.frames_dropped} dropped by the "
+            f"server, {status.keyframes} keyframes, {status.voxels} voxels")
+    return line + (f", error: {status.last_error}" if status.last_error else "")
 
 
 def write_session_file(client: BaseClient, out_dir: Path) -> None:

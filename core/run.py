@@ -3,8 +3,9 @@
 Outputs in the run folder: ``trajectory.txt`` (TUM), ``keyframes.json``, ``mesh.ply``, ``voxels.npz``,
 ``voxels.ply``, ``checkpoint.pt``, ``metrics.json`` (ATE when the capture has reference poses, mesh
 accuracy / completion against the whole GT and against its observed part when it has a GT mesh, the
-phantom-surface share always, timings, peak memory) and ``frames.json`` (per-frame tracking / mapping
-times, losses, iterations, lost flags).
+phantom-surface share always, timings, peak memory), ``frames.json`` (per-frame tracking / mapping
+times, losses, iterations, lost flags) and ``trajectory.png`` (top view and height over time, the estimate
+aligned onto the reference as for the ATE: :mod:`.eval.trajectory_plot`).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from .eval.phantom import phantom_for_capture
 from .eval.photometric import photometric_check
 from .eval.report import write_json
 from .eval.trajectory import TrajectoryEvalConfig, compute_ate
+from .eval.trajectory_plot import plot_trajectory
 from .geometry import invert_pose
 from .mesh import export_mesh, write_scene_views
 from .mesh.frame import WorldAxes, camera_up_forward
@@ -40,8 +42,13 @@ from .trajectory import Trajectory, write_tum_trajectory
 from .voxel_export import export_voxels
 
 __all__ = ["write_mesh_views", "reference_world_axes", "RunResult", "run_capture", "reference_trajectory",
-           "evaluate_run", "evaluate_mesh", "evaluate_phantom",
+           "evaluate_run", "evaluate_mesh", "evaluate_phantom", "write_trajectory_plot", "ATE_CONFIG",
            "peak_memory_mb"]
+
+ATE_CONFIG = TrajectoryEvalConfig(align="se3", max_diff_s=1e-3)
+"""How a run's estimate meets the capture's reference: SE(3) Umeyama alignment (``metrics.json``'s ``ate_se3``
+and ``trajectory.png``); ``ate_none`` anchors the first pose instead. The estimate carries the capture's own
+timestamps, so poses pair only with their own frame (1 ms)."""
 
 
 @dataclass
@@ -55,6 +62,8 @@ class RunResult:
     wall_s: float
     metrics: dict
     out_dir: Path | None
+    reference: Trajectory | None = None
+    """The capture's reference poses over the run's frames (``None`` without, or with fewer than 3)."""
 
 
 def peak_memory_mb(device: torch.device) -> dict[str, float]:
@@ -78,15 +87,17 @@ def reference_trajectory(capture: Capture, frames: int, step: int = 1) -> Trajec
 
 
 def evaluate_run(trajectory: Trajectory, mesh: trimesh.Trimesh, capture: Capture, frames: int,
-                 mesh_samples: int = 200_000, tracked: Trajectory | None = None) -> dict:
-    """ATE (aligned and anchored at the first frame), mesh metrics (``mesh_full_gt`` / ``mesh_observed_gt``)
-    and the phantom-surface share (``phantom``: the mesh against the depth placed with ``tracked``, the
-    estimate without its lost frames; ``trajectory`` when not given)."""
+                 mesh_samples: int = 200_000, tracked: Trajectory | None = None,
+                 reference: Trajectory | None = None) -> dict:
+    """ATE (aligned and anchored at the first frame, :data:`ATE_CONFIG`), mesh metrics (``mesh_full_gt`` /
+    ``mesh_observed_gt``) and the phantom-surface share (``phantom``: the mesh against the depth placed with
+    ``tracked``, the estimate without its lost frames; ``trajectory`` when not given). ``reference``: the
+    capture's reference poses over those frames when already known (else read from the capture)."""
     metrics: dict = {}
-    ref = reference_trajectory(capture, frames)
+    ref = reference if reference is not None else reference_trajectory(capture, frames)
     if ref is not None and len(trajectory) >= 3:
         for align in ("se3", "none"):
-            ate = compute_ate(trajectory, ref, TrajectoryEvalConfig(align=align, max_diff_s=1e-3))
+            ate = compute_ate(trajectory, ref, dataclasses.replace(ATE_CONFIG, align=align))
             metrics[f"ate_{align}"] = ate.summary()
         if len(trajectory) == len(ref) == frames:  # every frame has a pose (offline runs)
             metrics["depth_consistency"] = compare_depth_consistency(capture, trajectory, ref)
@@ -180,7 +191,11 @@ def run_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     bar = tqdm(total=n, desc=f"run {capture.name}", unit="frame", disable=not progress, dynamic_ncols=True)
     t0 = time.perf_counter()
     t_first: float | None = None
+    ref_stamps, ref_poses = [], []  # the reference poses come with the frames: no second pass over the images
     for frame in capture.frames(0, n):
+        if frame.T_world_cam is not None:
+            ref_stamps.append(frame.timestamp_s)
+            ref_poses.append(frame.T_world_cam)
         if config.mode == "offline":
             rec = slam.process(frame)
         else:
@@ -203,8 +218,10 @@ def run_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     traj = slam.trajectory()
     mesh = slam.mesh()
     stats = slam.stats()
-    metrics = evaluate_run(traj, mesh, capture, n, tracked=slam.trajectory(include_lost=False)) if evaluate else {}
-    result = RunResult(slam, traj, mesh, stats, wall, metrics, Path(out_dir) if out_dir else None)
+    ref = Trajectory(np.asarray(ref_stamps), np.stack(ref_poses)) if len(ref_poses) >= 3 else None
+    metrics = evaluate_run(traj, mesh, capture, n, tracked=slam.trajectory(include_lost=False),
+                           reference=ref) if evaluate else {}
+    result = RunResult(slam, traj, mesh, stats, wall, metrics, Path(out_dir) if out_dir else None, ref)
     if out_dir is not None:
         write_run_outputs(result, capture, n)
     return result
@@ -227,6 +244,22 @@ def reference_world_axes(trajectory: Trajectory) -> WorldAxes:
     up, forward = camera_up_forward(trajectory.T_world_cam)
     return WorldAxes("reference", tuple(up.tolist()), tuple(forward.tolist()),
                      invert_pose(trajectory.T_world_cam[0]) if len(trajectory) else None)
+
+
+def write_trajectory_plot(path: Path, slam: SlamSystem, trajectory: Trajectory,
+                          reference: Trajectory | None) -> Path | None:
+    """``trajectory.png`` (:func:`.eval.trajectory_plot.plot_trajectory`): the estimate, aligned onto
+    ``reference`` as the ATE is (:data:`ATE_CONFIG`), lost frames marked. "Up" is the session's
+    (:meth:`SlamSystem.world_axes`: gravity in an ARKit world) when the estimate lives in the reference's
+    world or there is no reference, else the reference cameras' (:func:`reference_world_axes`).
+    ``None`` when there is no pose to draw."""
+    if len(trajectory) == 0:
+        return None
+    axes = slam.world_axes()
+    up = axes.up_m if reference is None or axes.world == "reference" else reference_world_axes(reference).up_m
+    lost = np.array([r.lost for r in slam.records], dtype=bool)
+    return plot_trajectory(path, trajectory, up, reference, ATE_CONFIG,
+                           lost=lost if len(lost) == len(trajectory) else None)
 
 
 def _frame_rows(slam: SlamSystem) -> list[dict]:
@@ -262,7 +295,8 @@ def timing_summary(slam: SlamSystem, wall_s: float) -> dict:
 
 
 def write_run_outputs(result: RunResult, capture: Capture, frames: int) -> None:
-    """Write trajectory, keyframes, mesh, voxels, checkpoint, metrics and per-frame timings."""
+    """Write trajectory (TUM and ``trajectory.png``), keyframes, mesh, voxels, checkpoint, metrics and
+    per-frame timings."""
     out = result.out_dir
     if out is None:
         raise ValidationError("out_dir", "no output folder given")
@@ -270,6 +304,7 @@ def write_run_outputs(result: RunResult, capture: Capture, frames: int) -> None:
     slam = result.slam
     mapper = slam.mapper
     write_tum_trajectory(out / "trajectory.txt", result.trajectory)
+    write_trajectory_plot(out / "trajectory.png", slam, result.trajectory, result.reference)
     write_json(out / "keyframes.json", [
         {"index": kf.data.index, "timestamp_s": kf.data.timestamp_s, "T_world_cam": kf.T_world_cam.cpu().numpy()}
         for kf in mapper.keyframes])

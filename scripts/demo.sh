@@ -2,7 +2,8 @@
 # `make demo`: the streaming server end to end on this machine.
 #   1. render a small synthetic capture with exact ground truth (voxfusion synth),
 #   2. start `voxfusion serve` in the background (data in $OUT/data) and wait for /healthz,
-#   3. create a session and POST the frames one by one (binary frame messages, proto/README.md),
+#   3. create a session, print its live viewer link, and POST the frames one by one (binary frame messages,
+#      proto/README.md),
 #   4. finish the session and download the mesh and the trajectory with curl (the README's requests),
 #   5. print the ATE against the ground truth (voxfusion eval) and the frame rate, stop the server.
 #
@@ -55,6 +56,9 @@ curl -fsS -X POST "$URL/sessions" -H 'Content-Type: application/json' \
 ID=$("$PY" -c 'import json, sys; print(json.load(open(sys.argv[1]))["id"])' "$OUT/session.json")
 TOKEN=$("$PY" -c 'import json, sys; print(json.load(open(sys.argv[1]))["token"])' "$OUT/session.json")
 say "session $ID"
+VIEWER=$("$PY" -c 'import sys; from voxfusion.clients.http_client import viewer_url; print(viewer_url(*sys.argv[1:]))' \
+    "$URL" "$ID" "$TOKEN")
+say "live viewer (open it in a browser while the frames stream): $VIEWER"
 
 say "streaming $FRAMES frames"
 "$PY" - "$OUT/capture" "$URL" "$ID" "$TOKEN" <<'PYTHON'
@@ -102,7 +106,7 @@ import sys
 
 st = json.load(open(sys.argv[1]))
 print(f"[demo] session {st['id']}: {st['state']}, {st['frames_received']} frames received, "
-      f"{st['frames_tracked']} tracked ({st['frames_dropped']} dropped), {st['keyframes']} keyframes, "
-      f"{st['voxels']} voxels; {st['fps']:.2f} frames/s tracked, mean pose latency {st['latency_ms']:.0f} ms")
+      f"{st['frames_tracked']} tracked ({st.get('frames_lost', 0)} lost), {st['frames_dropped']} dropped by the "
+      f"server, {st['keyframes']} keyframes, {st['voxels']} voxels; {st['fps']:.2f} frames/s tracked, mean pose latency {st['latency_ms']:.0f} ms")
 PYTHON
 say "outputs in $OUT/ (mesh.ply, trajectory.txt, eval.json; server data in $OUT/data)"

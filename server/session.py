@@ -407,8 +407,10 @@ class Session:
                 self.mark_failed(f"finish timed out after {timeout_s:.0f} s with frames still queued")
             self._check_not_failed()
             try:
+                # Always let the engine drain its queue: a realtime session finished before its first frame
+                # was tracked has no mapper yet, but frames waiting for the tracker.
+                self.slam.finish(timeout_s=max(1.0, deadline - time.monotonic()))
                 if self.slam.mapper is not None:
-                    self.slam.finish(timeout_s=max(1.0, deadline - time.monotonic()))
                     self.write_checkpoint(from_snapshot=False)
                     mesh = self.slam.mesh()
                     atomic_write_bytes(self.folder / MESH_FILE, mesh_bytes(mesh, "ply"))

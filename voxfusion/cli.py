@@ -11,7 +11,7 @@ from voxfusion.core.errors import VoxFusionError
 
 app = typer.Typer(
     name="voxfusion",
-    help="Vox-Fusion dense RGB-D SLAM: evaluate, map, run, serve and view.",
+    help="Vox-Fusion dense RGB-D SLAM: evaluate, map, run, serve, stream, encode and view.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
@@ -24,6 +24,7 @@ _COMMAND_MODULES = (
     "voxfusion.commands.run",
     "voxfusion.commands.serve",
     "voxfusion.commands.stream",
+    "voxfusion.commands.encode",
     "voxfusion.commands.bridge",
     "voxfusion.commands.view",
 )

@@ -1,7 +1,7 @@
 """Evaluation: trajectory error (ATE / RPE), multi-view depth consistency, mesh accuracy / completion /
 F-score (against the whole and the observed GT), the phantom-surface share (no GT needed), the mesh-frame
 sidecar, depth L1, the render-back depth probe (and its outlier / pose perturbations), and the table / JSON
-helpers the CLI and the benchmarks share."""
+helpers the CLI and the benchmarks share, and the trajectory plot (top view and height over time)."""
 
 from .consistency import DepthConsistency, depth_consistency, pair_disagreement
 from .depth import DepthL1Result, depth_l1
@@ -49,6 +49,7 @@ from .trajectory import (
     compute_ate,
     compute_rpe,
 )
+from .trajectory_plot import PlotAxes, plot_axes, plot_trajectory
 
 __all__ = [
     "DepthConsistency",
@@ -62,6 +63,9 @@ __all__ = [
     "align_umeyama",
     "compute_ate",
     "compute_rpe",
+    "PlotAxes",
+    "plot_axes",
+    "plot_trajectory",
     "MeshMethod",
     "MeshEvalConfig",
     "MeshMetrics",

@@ -4,6 +4,7 @@ real server session."""
 
 import json
 import random
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -156,7 +157,45 @@ def test_bridge_command(server, tmp_path):
             publisher.kill()
     info = json.loads((out / "session.json").read_text())
     assert f"session {info['id']}" in result.output
+    assert f"viewer: {server.url}/sessions/{info['id']}/view?token={info['token']}" in result.output
     assert f"mesh: {server.url}/sessions/{info['id']}/mesh" in result.output
     assert "received 3, sent 3" in result.output
     assert (out / "mesh.ply").read_bytes()[:3] == b"ply" and (out / "trajectory.txt").is_file()
     assert server.manager.status(info["id"]).frames_received == 3
+
+
+def test_bridge_without_a_phone_leaves_no_session(server, tmp_path):
+    """No frame ever arrives: the session is created lazily, so none is created at all (nothing to delete,
+    even had the bridge been killed)."""
+    before = {row.id for row in server.manager.store.all()}
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["bridge", "nerfcapture", "--server", server.url, "--loopback", "--domain-id",
+                                      str(random.randint(201, 232)), "--idle-timeout", "1", "--out", str(out)])
+    assert result.exit_code == 0, result.output + repr(result.exception)
+    assert "received 0, sent 0" in result.output
+    assert "no frame with depth arrived: no session was created" in result.output
+    assert not re.search(r"^session [0-9a-f]", result.output, re.MULTILINE) and "viewer:" not in result.output
+    assert {row.id for row in server.manager.store.all()} == before
+    assert not (out / "session.json").exists()
+
+
+def test_bridge_creates_its_session_with_the_first_frame(server):
+    """The library call: ``open_session`` runs once, just before the first frame is sent."""
+    domain_id = random.randint(100, 232)
+    receiver = NeRFCaptureReceiver(domain_id, dds_config_xml(loopback=True))
+    publisher = _publisher(domain_id, 2)
+    calls = []
+    try:
+        with Client(server.url) as client:
+            def open_session():
+                calls.append(len(server.manager.store.all()))
+                client.create_session("lazy", TINY, mode="offline")
+
+            stats = run_nerfcapture_bridge(client, receiver=receiver, max_frames=2, idle_timeout_s=90,
+                                           open_session=open_session)
+            assert publisher.wait(timeout=60) == 0, publisher.stderr.read()
+            assert stats.sent == 2 and len(calls) == 1
+            assert server.manager.status(client.session.id).frames_received == 2
+    finally:
+        if publisher.poll() is None:
+            publisher.kill()

@@ -242,3 +242,21 @@ def test_finish_then_outputs_come_from_disk(streamed):
     assert late.status_code == 409 and "finished" in late.json()["detail"]
     wait_until(lambda: ws_messages and ws_messages[-1].get("event") == "end", 30, "the WebSocket end message")
     assert ws_messages[-1]["state"] == "finished"
+
+
+def test_realtime_session_finished_at_once_still_tracks_and_maps_its_frames(server_factory):
+    """``finish`` right after the frames (before the tracker has taken the first) drains the engine's queue:
+    the session ends with a map, not ``finished`` with 0 frames tracked and no mesh."""
+    from srvutil import TINY
+
+    srv = server_factory()
+    scene = make_scene(3, seed=4)
+    sid, token = srv.api.create(config=TINY, mode="realtime")
+    for m in scene.messages:
+        assert srv.api.post_frame(sid, token, m).status_code == 202
+    r = srv.api.http.post(f"/sessions/{sid}/finish", headers=srv.api.auth(token))
+    assert r.status_code == 200, r.text
+    st = r.json()
+    assert st["state"] == "finished" and st["frames_tracked"] >= 1, st
+    assert st["frames_tracked"] + st["frames_dropped"] == 3, st
+    assert srv.api.http.get(f"/sessions/{sid}/mesh", headers=srv.api.auth(token)).status_code == 200

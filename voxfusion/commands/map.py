@@ -8,6 +8,8 @@ Without ``--config`` the preset follows the capture and the device, as for ``vox
 ``mesh.ply``, ``voxels.npz``, ``voxels.ply``, ``checkpoint.pt``, ``trajectory.txt``, ``timings.json`` and
 ``metrics.json`` (mesh accuracy / completion against the whole and the observed GT when the capture has a GT
 mesh, keys ``mesh_full_gt`` / ``mesh_observed_gt`` under ``mesh``; the phantom-surface share, ``phantom``).
+An OUT holding another command's outputs is refused unless ``--force`` deletes them
+(:mod:`voxfusion.commands.outputs`).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from voxfusion.core.eval import format_table, write_json
 from voxfusion.core.reconstruct import map_capture
 from voxfusion.core.run import evaluate_mesh, evaluate_phantom
 
+from .outputs import claim_output_dir
+
 __all__ = ["register"]
 
 
@@ -41,8 +45,13 @@ def register(app: typer.Typer) -> None:
         stride: Annotated[int, typer.Option(help="Use every N-th frame.")] = 1,
         device: Annotated[str | None, typer.Option(help="auto, cpu or cuda (overrides the config).")] = None,
         eval_samples: Annotated[int, typer.Option(help="Surface samples for mesh metrics.")] = 200_000,
+        force: Annotated[bool, typer.Option("--force", help="Delete other commands' outputs in OUT (e.g. a "
+                                                            "stream's session.json) instead of refusing "
+                                                            "the folder.")] = False,
     ) -> None:
         """Reconstruct CAPTURE with its reference poses: mesh, voxel map, checkpoint, metrics."""
+        for path in claim_output_dir(out, "map", force):
+            typer.echo(f"--force: deleted {path} (another command's output)")
         overrides = list(set_ or [])
         if device:
             overrides.append(f"device={device}")

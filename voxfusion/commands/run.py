@@ -8,9 +8,12 @@ Example::
 Without ``--config`` the preset follows the capture's kind and the device
 (:func:`voxfusion.core.slam_config.preset_for`) and the chosen preset is printed with the reason.
 
-writes ``trajectory.txt`` (TUM), ``keyframes.json``, ``mesh.ply``, ``voxels.npz``/``.ply``,
-``checkpoint.pt``, ``metrics.json`` (ATE, mesh metrics against the whole and the observed GT, phantom-surface
-share, timings, peak memory) and ``frames.json``.
+writes ``trajectory.txt`` (TUM), ``trajectory.png`` (top view and height over time, against the reference
+poses aligned as for the ATE), ``keyframes.json``, ``mesh.ply``, ``voxels.npz``/``.ply``, ``checkpoint.pt``,
+``metrics.json`` (ATE, mesh metrics against the whole and the observed GT, phantom-surface share, timings, peak
+memory) and ``frames.json``. An OUT holding another command's outputs (a ``voxfusion stream``'s
+``session.json``, ``voxfusion eval``'s ``eval.json``) is refused unless ``--force`` deletes them
+(:mod:`voxfusion.commands.outputs`).
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ from voxfusion.core.datasets.frame import Capture
 from voxfusion.core.eval import format_table
 from voxfusion.core.run import run_capture, timing_summary
 from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for, size_warning
+
+from .outputs import claim_output_dir
 
 __all__ = ["register", "config_for_capture", "mesh_metric_rows"]
 
@@ -87,8 +92,13 @@ def register(app: typer.Typer) -> None:
         mode: Annotated[str | None, typer.Option(help="offline or realtime (overrides the config).")] = None,
         device: Annotated[str | None, typer.Option(help="auto, cpu or cuda (overrides the config).")] = None,
         speed: Annotated[float, typer.Option(help="Realtime mode: playback speed factor.")] = 1.0,
+        force: Annotated[bool, typer.Option("--force", help="Delete other commands' outputs in OUT (e.g. a "
+                                                            "stream's session.json) instead of refusing "
+                                                            "the folder.")] = False,
     ) -> None:
         """Track and map CAPTURE; print ATE / mesh metrics / speed and write all outputs to OUT."""
+        for path in claim_output_dir(out, "run", force):
+            typer.echo(f"--force: deleted {path} (another command's output)")
         overrides = list(set_ or [])
         if device:
             overrides.append(f"device={device}")
