@@ -6,15 +6,18 @@ subprocess that can be killed), tiny engine settings, and synthetic frames encod
 
 from __future__ import annotations
 
+import io
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import httpx
 import numpy as np
 import pytest
 import uvicorn
+from PIL import Image
 
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.trajectory import Trajectory
@@ -28,6 +31,20 @@ TINY = {"mapping": {"rays_per_frame": 128, "first_frame_iters": 30}, "tracking":
 FAST = {"mapping": {"rays_per_frame": 64, "first_frame_iters": 2, "iters": 1},
         "tracking": {"rays": 64, "iters": 2}, "field": {"sdf_hidden": 16, "color_hidden": 16}, "mesh_res": 2}
 """For tests of the server's behaviour, not of the map's quality: as little engine work as possible."""
+
+
+def png(img: np.ndarray) -> bytes:
+    """``img`` (uint8 / uint16, grey or BGR) encoded as PNG."""
+    ok, buf = cv2.imencode(".png", img)
+    assert ok
+    return buf.tobytes()
+
+
+def jpeg(rgb: np.ndarray) -> bytes:
+    """``rgb`` (``[H, W, 3]`` uint8) encoded as JPEG (quality 90)."""
+    out = io.BytesIO()
+    Image.fromarray(rgb).save(out, format="JPEG", quality=90)
+    return out.getvalue()
 
 
 def wait_until(predicate, timeout_s: float, what: str, poll_s: float = 0.1):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 import json
 import struct
 import zlib
@@ -10,8 +9,7 @@ import zlib
 import cv2
 import numpy as np
 import pytest
-from PIL import Image
-from srvutil import FAST, make_scene, wait_until
+from srvutil import FAST, jpeg, make_scene, png, wait_until
 
 from voxfusion.proto import encode_frame, read_header
 from voxfusion.proto.container import Payloads, pack_message
@@ -26,18 +24,6 @@ def raw_message(header_text: str, color: bytes = b"", depth: bytes = b"", confid
     body = struct.pack("<4sHHIIII", b"VXFR", 1, 0, len(hb), len(color), len(depth), len(confidence))
     body += hb + color + depth + confidence
     return body + struct.pack("<I", zlib.crc32(body))
-
-
-def png(img: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(".png", img)
-    assert ok
-    return buf.tobytes()
-
-
-def jpeg(rgb: np.ndarray) -> bytes:
-    out = io.BytesIO()
-    Image.fromarray(rgb).save(out, format="JPEG", quality=90)
-    return out.getvalue()
 
 
 @pytest.fixture(scope="module")

@@ -5,15 +5,13 @@ and never changes the recording, before and after a restart."""
 
 from __future__ import annotations
 
-import io
 import json
 
 import cv2
 import numpy as np
 import pytest
 import zstandard
-from PIL import Image
-from srvutil import FAST, ServerThread, make_scene
+from srvutil import FAST, ServerThread, jpeg, make_scene, png
 
 from voxfusion.proto import read_header
 from voxfusion.proto.container import Payloads, pack_message
@@ -21,18 +19,6 @@ from voxfusion.proto.recording import RecordingCapture
 from voxfusion.server import ServerSettings
 
 W, H = 96, 72
-
-
-def png(img: np.ndarray) -> bytes:
-    ok, buf = cv2.imencode(".png", img)
-    assert ok
-    return buf.tobytes()
-
-
-def jpeg(rgb: np.ndarray) -> bytes:
-    out = io.BytesIO()
-    Image.fromarray(rgb).save(out, format="JPEG", quality=90)
-    return out.getvalue()
 
 
 @pytest.fixture(scope="module")
