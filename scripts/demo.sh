@@ -8,7 +8,8 @@
 #   5. print the ATE against the ground truth (voxfusion eval) and the frame rate, stop the server.
 #
 # Environment overrides: DEMO_OUT (default demo-out), DEMO_PORT (8000), DEMO_FRAMES (40), DEMO_WIDTH (160),
-# DEMO_HEIGHT (120), DEMO_MODE (offline: every frame tracked | realtime: the tracker takes the newest frame).
+# DEMO_HEIGHT (120), DEMO_MODE (offline: every frame tracked | realtime: the tracker takes the newest frame),
+# DEMO_KEEP_SERVER=1 (keep the server up at the end, so the viewer link shows the finished scan; Ctrl-C stops it).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -58,7 +59,7 @@ TOKEN=$("$PY" -c 'import json, sys; print(json.load(open(sys.argv[1]))["token"])
 say "session $ID"
 VIEWER=$("$PY" -c 'import sys; from voxfusion.clients.http_client import viewer_url; print(viewer_url(*sys.argv[1:]))' \
     "$URL" "$ID" "$TOKEN")
-say "live viewer (open it in a browser while the frames stream): $VIEWER"
+say "live viewer (open it in a browser): $VIEWER"
 
 say "streaming $FRAMES frames"
 "$PY" - "$OUT/capture" "$URL" "$ID" "$TOKEN" <<'PYTHON'
@@ -110,3 +111,9 @@ print(f"[demo] session {st['id']}: {st['state']}, {st['frames_received']} frames
       f"server, {st['keyframes']} keyframes, {st['voxels']} voxels; {st['fps']:.2f} frames/s tracked, mean pose latency {st['latency_ms']:.0f} ms")
 PYTHON
 say "outputs in $OUT/ (mesh.ply, trajectory.txt, eval.json; server data in $OUT/data)"
+if [ "${DEMO_KEEP_SERVER:-0}" = 1 ]; then
+    say "the server stays up: open the viewer link above to look at the scan; Ctrl-C stops it"
+    wait "$SERVER_PID" || true
+else
+    say "to look at the scan in a browser, run DEMO_KEEP_SERVER=1 make demo and open the viewer link"
+fi

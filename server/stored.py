@@ -90,8 +90,10 @@ class StoredMap:
         return [PoseOut.model_validate(p) for p in json.loads(path.read_text())]
 
     def mesh_bytes(self, fmt: str, detail: MeshDetail = "full") -> tuple[bytes, int]:
-        """The mesh as ``fmt`` at ``detail`` (``full``: the final ``mesh.ply`` when it is as new as the
-        checkpoint; ``preview``: extracted at the preview lattice) and the map version it belongs to."""
+        """The mesh as ``fmt`` and the map version it belongs to: the final ``mesh.ply`` when it is as new as
+        the checkpoint, whatever ``detail`` (it is already made, and coloured from the keyframe images, which
+        checkpoints do not keep); else extracted from the checkpoint at ``detail`` (``full``: ``mesh_res``,
+        ``preview``: the preview lattice) with the colour head's colours."""
         ckpt = self._checkpoint()
         version = int(ckpt.mapper.version)
         with self._lock:
@@ -99,8 +101,7 @@ class StoredMap:
             if cached is not None:
                 return cached, version
             mesh_file = self.folder / MESH_FILE
-            fresh = (detail == "full" and mesh_file.is_file()
-                     and mesh_file.stat().st_mtime_ns >= self.checkpoint_path.stat().st_mtime_ns)
+            fresh = mesh_file.is_file() and mesh_file.stat().st_mtime_ns >= self.checkpoint_path.stat().st_mtime_ns
             if fresh and fmt == "ply":
                 data = mesh_file.read_bytes()
             else:

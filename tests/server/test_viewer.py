@@ -14,6 +14,7 @@ import trimesh
 from browser import CHROMIUM_MISSING, headless_chromium, screenshot, viewer_value
 from srvutil import TINY, make_scene, wait_until
 
+from voxfusion.server.outputs import MESH_DETAILS
 from voxfusion.server.viewer_assets import BUILD_INFO, VIEWER_DIST, source_digest
 
 PANEL_PX = 320
@@ -86,16 +87,28 @@ def test_preview_mesh_is_coarser_and_labelled(server_factory):
     auth = srv.api.auth(token)
     for message in scene.messages:
         assert srv.api.post_frame(sid, token, message).status_code == 202
-    srv.api.http.post(f"/sessions/{sid}/finish", headers=auth).raise_for_status()
-    full = srv.api.http.get(f"/sessions/{sid}/mesh", headers=auth)
-    preview = srv.api.http.get(f"/sessions/{sid}/mesh", params={"detail": "preview"}, headers=auth)
+    wait_until(lambda: srv.api.status(sid, token)["frames_tracked"] == 4, 120, "every frame to be tracked")
+
+    def both():  # the same map version for both (mapping may publish between the two requests)
+        full = srv.api.http.get(f"/sessions/{sid}/mesh", headers=auth)
+        preview = srv.api.http.get(f"/sessions/{sid}/mesh", params={"detail": "preview"}, headers=auth)
+        same = full.headers.get("x-map-version") == preview.headers.get("x-map-version")
+        return (full, preview) if same else None
+
+    full, preview = wait_until(both, 60, "full and preview meshes of one map version")
     assert full.status_code == preview.status_code == 200
-    assert preview.headers["x-map-version"] == full.headers["x-map-version"]
     assert preview.headers["etag"] != full.headers["etag"]
     faces = [trimesh.load(io.BytesIO(r.content), file_type="ply").faces.shape[0] for r in (full, preview)]
     assert 0 < faces[1] < faces[0] / 2, faces  # 4 samples per 10 cm voxel edge against 8
     bad = srv.api.http.get(f"/sessions/{sid}/mesh", params={"detail": "max"}, headers=auth)
     assert bad.status_code == 422 and bad.json()["field"] == "detail"
+
+    # A finished session serves its final mesh (made at finish, coloured from the images) for both.
+    srv.api.http.post(f"/sessions/{sid}/finish", headers=auth).raise_for_status()
+    srv.stop()
+    srv2 = server_factory(data_dir=srv.settings.data_dir)
+    stored = [srv2.api.http.get(f"/sessions/{sid}/mesh", params={"detail": d}, headers=auth) for d in MESH_DETAILS]
+    assert all(r.status_code == 200 for r in stored) and stored[0].content == stored[1].content
 
 
 def _scene_region(image: np.ndarray) -> np.ndarray:
