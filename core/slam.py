@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import threading
 import time
 from collections import deque
@@ -36,6 +37,7 @@ import trimesh
 from .datasets.frame import RGBDFrame
 from .errors import ValidationError, VoxFusionError
 from .field import SDFDecoder
+from .frame_checks import MIN_INIT_VALID_PIXELS, intrinsics_problem, usable_pose
 from .framedata import FrameData, frame_to_device
 from .geometry import invert_pose, nearest_rigid
 from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views
@@ -48,6 +50,8 @@ from .trajectory import Trajectory
 from .voxels import VoxelMap
 
 __all__ = ["SlamError", "FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem"]
+
+log = logging.getLogger("voxfusion.slam")
 
 
 class SlamError(VoxFusionError):
@@ -75,6 +79,8 @@ class FrameRecord:
     received_at: float = 0.0
     tracked_at: float = 0.0
     data: FrameData | None = dataclasses.field(default=None, repr=False)
+    T_device: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    """The frame's device pose (ARKit), when it carries a usable one: the motion prior of the next frames."""
     """The frame's observations while it waits for the mapper (released once mapped)."""
 
     def current_pose(self) -> np.ndarray:
@@ -149,7 +155,6 @@ class SlamSystem:
         self._t_start: float | None = None
         self._latencies: deque[float] = deque(maxlen=100)
         self._streams: dict[str, torch.cuda.Stream] = {}
-        self._device_poses: dict[int, np.ndarray] = {}
         self._good_tail: deque[FrameRecord] = deque(maxlen=2)  # the last two frames not lost, for priors
 
     # ------------------------------------------------------------------ shared helpers
@@ -188,7 +193,8 @@ class SlamSystem:
         with self._lock:
             poses = np.stack([r.current_pose() for r in self.records if not r.lost] or
                              [r.current_pose() for r in self.records[:1]] or [np.eye(4)])
-            first = self.records[0].current_pose() if self.records else None
+            good = [r for r in self.records[:64] if not r.lost]  # the first frames may have been unusable
+            first = (good or self.records)[0].current_pose() if self.records else None
         up, forward = camera_up_forward(poses)
         world = self._world
         if self._gravity_y_up:  # ARKit-style world: +y is up
@@ -205,7 +211,7 @@ class SlamSystem:
             return self._first_pose(frame), False
         prev = good[-1]
         prev2 = good[-2] if len(good) > 1 else None
-        dev_prev = self._device_pose_of(prev.index)
+        dev_prev = prev.T_device
         dev_cur = frame.T_world_cam_device
         ratio = 1.0
         if prev2 is not None and prev.timestamp_s > prev2.timestamp_s:
@@ -213,9 +219,6 @@ class SlamSystem:
         T = predict_pose(prev.current_pose(), None if prev2 is None else prev2.current_pose(),
                          self.config.tracking, dev_prev, dev_cur, dt_ratio=ratio)
         return T, device_prior_applies(self.config.tracking, dev_prev, dev_cur)
-
-    def _device_pose_of(self, index: int) -> np.ndarray | None:
-        return self._device_poses.get(index)
 
     def _publish(self) -> None:
         """Swap in a new frozen snapshot of the map for the tracker and for readers."""
@@ -234,13 +237,25 @@ class SlamSystem:
             self.tracker.set_map(snap.voxels, snap.decoder)
 
     def _track(self, frame: RGBDFrame, received_at: float) -> FrameRecord:
-        """Track one frame (or place the first one) and record it; ``record.data`` holds its tensors."""
-        if frame.T_world_cam_device is not None:
-            self._device_poses[frame.index] = frame.T_world_cam_device
+        """Track one frame (or place the first one) and record it; ``record.data`` holds its tensors.
+
+        A frame the engine cannot use is recorded as lost and skipped, never an error: implausible
+        intrinsics (:func:`.frame_checks.intrinsics_problem`), or, before the map exists, fewer than
+        :data:`.frame_checks.MIN_INIT_VALID_PIXELS` valid depth pixels (the map starts with the first usable
+        frame). Reference / device poses out of reach (:func:`.frame_checks.pose_problem`) are ignored."""
+        frame = frame.with_(T_world_cam=usable_pose(frame.T_world_cam),
+                            T_world_cam_device=usable_pose(frame.T_world_cam_device))
         if self.mapper is None:
             self._init_engine(frame)
         data = self._to_device(frame)
-        if not self.records:
+        unusable = intrinsics_problem(float(frame.K[0, 0]), float(frame.K[1, 1]), frame.width, frame.height)
+        if unusable is None and not self._good_tail and data.n_valid < MIN_INIT_VALID_PIXELS:
+            unusable = f"{data.n_valid} valid depth pixels, fewer than the {MIN_INIT_VALID_PIXELS} the map starts with"
+        if unusable is not None:
+            log.info("frame %d skipped (lost): %s", frame.index, unusable)
+            T = self._prior(frame)[0] if self._good_tail else self._first_pose(frame)
+            rec = FrameRecord(frame.index, frame.timestamp_s, T, lost=True, received_at=received_at)
+        elif not self._good_tail:
             T = self._first_pose(frame)
             rec = FrameRecord(frame.index, frame.timestamp_s, T, received_at=received_at)
         else:
@@ -254,6 +269,7 @@ class SlamSystem:
                 rec = FrameRecord(frame.index, frame.timestamp_s, res.T_world_cam, lost=res.lost, tracking=res,
                                   received_at=received_at)
         rec.data = None if rec.lost else data
+        rec.T_device = frame.T_world_cam_device
         kfs = self.mapper.keyframes
         if kfs and not rec.lost:
             ref = kfs[-1]
@@ -373,14 +389,14 @@ class SlamSystem:
                 self._dropped += len(self._pending)  # older untracked frames are dropped
                 self._pending.clear()
                 self._tracking_busy = True
-            first = not self.records
+            first = not self._good_tail
             rec = self._track(frame, received_at)
             with self._cond:
                 if not rec.lost:
                     self._to_map.append(rec)
                 self._tracking_busy = False
                 self._cond.notify_all()
-                if first:  # the map must exist before the next frame can be tracked
+                if first and not rec.lost:  # the map must exist before the next frame can be tracked
                     while self._snapshot is None and self.error is None:
                         self._cond.wait()
 

@@ -19,7 +19,7 @@ from .codecs import (
     ConfidenceEncoding,
     DepthEncoding,
 )
-from .container import ERROR_FIELDS, MAGIC, MEDIA_TYPE, WIRE_VERSION, FrameDecodeError
+from .container import ERROR_FIELDS, MAGIC, MEDIA_TYPE, WIRE_VERSION, FrameDecodeError, FrameValueError
 from .frame_codec import (
     DecodedFrame,
     DecodeLimits,
@@ -37,6 +37,7 @@ __all__ = [
     "MEDIA_TYPE",
     "ERROR_FIELDS",
     "FrameDecodeError",
+    "FrameValueError",
     "DEPTH_ENCODINGS",
     "COLOR_ENCODINGS",
     "CONFIDENCE_ENCODINGS",

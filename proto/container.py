@@ -45,6 +45,7 @@ __all__ = [
     "MAX_HEADER_BYTES",
     "ERROR_FIELDS",
     "FrameDecodeError",
+    "FrameValueError",
     "Payloads",
     "pack_message",
     "unpack_message",
@@ -80,6 +81,12 @@ class FrameDecodeError(ValidationError):
     ``"device_pose"``; ``problem`` says what is wrong in words. It is a :class:`ValidationError` (so a
     ``VoxFusionError`` and a ``ValueError``): the server maps it to HTTP 400 with the field.
     """
+
+
+class FrameValueError(FrameDecodeError):
+    """A well-formed message whose values no camera produces (a field of view outside 2-170 degrees, a
+    device pose more than 100 km from its origin: :mod:`voxfusion.core.frame_checks`); the server answers
+    HTTP 422 with the field. Checked at the door so one such frame never reaches a session's engine."""
 
 
 class Payloads(NamedTuple):

@@ -35,6 +35,7 @@ import numpy as np
 
 from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.errors import ShapeError, ValidationError
+from voxfusion.core.frame_checks import intrinsics_problem, pose_problem
 from voxfusion.core.geometry import check_rigid, make_intrinsics, opencv_to_opengl, opengl_to_opencv, scale_intrinsics
 
 from .codecs import (
@@ -53,7 +54,7 @@ from .codecs import (
     encode_confidence,
     encode_depth,
 )
-from .container import MAX_HEADER_BYTES, FrameDecodeError, Payloads, pack_message, unpack_message
+from .container import MAX_HEADER_BYTES, FrameDecodeError, FrameValueError, Payloads, pack_message, unpack_message
 
 __all__ = [
     "PoseConvention",
@@ -317,8 +318,10 @@ def _choice(obj: dict[str, Any], key: str, field: str, choices: tuple[str, ...])
     return v
 
 
-def _check_intrinsics(intr: WireIntrinsics, w: int, h: int, error: type[ValidationError]) -> None:
-    """fx, fy > 0 and finite; principal point inside the image; same aspect ratio as the depth."""
+def _check_intrinsics(intr: WireIntrinsics, w: int, h: int, error: type[ValidationError],
+                      implausible: type[ValidationError] | None = None) -> None:
+    """fx, fy > 0 and finite; principal point inside the image; same aspect ratio as the depth (``error``);
+    a field of view a camera can have (``implausible``, default ``error``)."""
     values = (intr.fx, intr.fy, intr.cx, intr.cy)
     if not all(math.isfinite(v) for v in values):
         raise error("intrinsics", f"must be finite, got fx={intr.fx}, fy={intr.fy}, cx={intr.cx}, cy={intr.cy}")
@@ -332,6 +335,9 @@ def _check_intrinsics(intr: WireIntrinsics, w: int, h: int, error: type[Validati
     if not _aspect_close(intr.width, intr.height, w, h):
         raise error("intrinsics", f"stated for {intr.width}x{intr.height}, which does not have the depth's "
                                   f"aspect ratio ({w}x{h}); intrinsics of a cropped image cannot be scaled")
+    problem = intrinsics_problem(intr.fx, intr.fy, intr.width, intr.height)
+    if problem is not None:
+        raise (implausible or error)("intrinsics", problem)
 
 
 def _parse_header(raw: dict[str, Any], limits: DecodeLimits) -> FrameHeader:
@@ -354,7 +360,7 @@ def _parse_header(raw: dict[str, Any], limits: DecodeLimits) -> FrameHeader:
     intr = WireIntrinsics(*(_num(ik, k, "intrinsics") for k in ("fx", "fy", "cx", "cy")),
                           _int(ik, "width", "intrinsics", 1, MAX_INTRINSICS_SIZE),
                           _int(ik, "height", "intrinsics", 1, MAX_INTRINSICS_SIZE))
-    _check_intrinsics(intr, w, h, FrameDecodeError)
+    _check_intrinsics(intr, w, h, FrameDecodeError, FrameValueError)
 
     col = _obj(raw, "color", "color", required=False)
     color_encoding, cw, ch = None, 0, 0
@@ -384,6 +390,9 @@ def _parse_header(raw: dict[str, Any], limits: DecodeLimits) -> FrameHeader:
             T = check_rigid(T, "device_pose")
         except ValidationError as e:
             raise FrameDecodeError("device_pose", e.problem) from e
+        problem = pose_problem(T)
+        if problem is not None:
+            raise FrameValueError("device_pose", problem)
         if convention == "arkit":
             T = opengl_to_opencv(T)
     return FrameHeader(seq=seq, session=session, timestamp_s=timestamp_s, intrinsics=intr,

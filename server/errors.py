@@ -9,6 +9,8 @@ maps every one of them to a status and an :class:`~voxfusion.proto.schemas.Error
 error                                        status  when
 ===========================================  ======  ==========================================
 ``FrameDecodeError`` (unknown encoding)      415     a frame names an encoding we do not know
+``FrameValueError``                          422     well-formed frame no camera produces (intrinsics,
+                                                     device pose out of reach: ``core.frame_checks``)
 ``FrameDecodeError`` (anything else)         400     malformed frame message or upload
 ``UnsupportedMediaTypeError``                415     a ``Content-Type`` the route does not take
 ``ValidationError`` / ``ConfigError``        422     bad JSON field, unknown config key
@@ -20,7 +22,10 @@ FastAPI ``RequestValidationError``           422     request body / query does n
 ``SessionConflictError``                     409     the session is finished, finishing or failed
 ``PayloadTooLargeError``                     413     body or image larger than the server's limits
 ``QueueFullError``                           429     per-session ingest queue full (``Retry-After``)
+``TooManyClientSessionsError``               429     one address holds ``max_sessions_per_client``
+                                                    open sessions created without an API key
 ``TooManySessionsError``                     503     ``max_sessions`` open (``Retry-After``)
+anything else                                500     a bug: JSON ``{"detail", "field": null}`` too
 ===========================================  ======  ==========================================
 """
 
@@ -35,7 +40,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from voxfusion.core.errors import CaptureError, ValidationError, VoxFusionError
-from voxfusion.proto import FrameDecodeError
+from voxfusion.proto import FrameDecodeError, FrameValueError
 
 __all__ = [
     "ServerError",
@@ -48,6 +53,7 @@ __all__ = [
     "UnsupportedMediaTypeError",
     "QueueFullError",
     "TooManySessionsError",
+    "TooManyClientSessionsError",
     "install_exception_handlers",
     "error_status",
 ]
@@ -134,6 +140,16 @@ class TooManySessionsError(ServerError):
         super().__init__(detail, None, {"Retry-After": str(max(1, int(retry_after_s)))})
 
 
+class TooManyClientSessionsError(ServerError):
+    """One client address holds ``max_sessions_per_client`` open sessions created without an API key (429).
+
+    Not retryable as such: the client must finish or delete one of its sessions (idle ones are closed after
+    ``session_idle_timeout_s``), or create sessions with the server's API key.
+    """
+
+    status = 429
+
+
 _UNKNOWN_ENCODING = re.compile(r"^unknown (encoding|levels)\b")
 
 
@@ -141,6 +157,8 @@ def error_status(exc: BaseException) -> int:
     """The HTTP status the server answers ``exc`` with (see the module table); 500 for anything else."""
     if isinstance(exc, ServerError):
         return exc.status
+    if isinstance(exc, FrameValueError):
+        return 422
     if isinstance(exc, FrameDecodeError):
         if exc.field in ("depth", "color", "confidence") and _UNKNOWN_ENCODING.match(exc.problem):
             return 415
@@ -188,3 +206,10 @@ def install_exception_handlers(app: FastAPI) -> None:
     async def _voxfusion_error(_: Request, exc: VoxFusionError) -> JSONResponse:
         log.exception("internal error: %s", exc)
         return JSONResponse(_body(f"internal error: {exc}", None), status_code=500)
+
+    @app.exception_handler(Exception)
+    async def _unexpected_error(_: Request, exc: Exception) -> JSONResponse:
+        # Starlette answers with this, then re-raises ``exc`` so that the server logs its traceback; the
+        # message is not echoed (it may hold paths or other internals).
+        return JSONResponse(_body(f"internal error ({type(exc).__name__}); see the server log", None),
+                            status_code=500)

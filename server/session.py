@@ -224,7 +224,12 @@ class Session:
                 for message in iter_messages(self.recorder.path, stop=self._replay_total):
                     if self._stop:
                         return
-                    self._submit(decode_frame(message).frame, paced=True)
+                    try:
+                        frame = decode_frame(message).frame
+                    except FrameDecodeError as e:  # recorded before the door refused such frames: skip it
+                        log.warning("session %s: replay skips a recorded frame: %s", self.id, e)
+                    else:
+                        self._submit(frame, paced=True)
                     with self._cond:
                         self._replay_left -= 1
             paced = self.mode == SessionMode.offline

@@ -1,6 +1,7 @@
 """Tracking and the SLAM system on tiny synthetic captures (correctness, never timings)."""
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -188,3 +189,53 @@ def test_constant_velocity_prior_stretches_over_skipped_frames():
     dt, da = pose_error(prior, T4)
     assert dt < 1e-3 and da < 0.05, (dt, da)
     np.testing.assert_allclose(predict_pose(T2, T1, TrackingConfig(), dt_ratio=1.0), T2 @ step, atol=1e-12)
+
+
+def _unusable_first_frames(f):
+    """Variants of frame ``f`` the engine cannot start a map with (the issue's bad-first-frame cases)."""
+    K_bad = f.K.copy()
+    K_bad[0, 0] = K_bad[1, 1] = 1e-6
+    far = f.T_world_cam.copy()
+    far[:3, 3] += 1e12
+    return [f.with_(depth_m=np.zeros_like(f.depth_m)),                  # no valid depth (pointed at the sky)
+            f.with_(depth_m=np.full_like(f.depth_m, 65.0)),             # all out of range, far
+            f.with_(depth_m=np.full_like(f.depth_m, 0.001)),            # all out of range, near
+            f.with_(K=K_bad),                                          # fx = fy = 1e-6
+            f.with_(depth_m=np.where(np.arange(f.depth_m.size).reshape(f.depth_m.shape) < 10, f.depth_m, 0))]
+
+
+@pytest.mark.parametrize("mode", ["offline", "realtime"])
+def test_unusable_first_frames_are_lost_and_the_map_starts_with_the_first_usable_one(capture, mode):
+    slam = SlamSystem(load_preset("cpu-small", TINY + [f"mode={mode}"]))
+    bad = _unusable_first_frames(capture[0])
+    good = list(capture.frames(0, 4))
+    frames = [b.with_(index=i) for i, b in enumerate(bad)] + [g.with_(index=len(bad) + i) for i, g in enumerate(good)]
+    if mode == "offline":
+        records = [slam.process(f) for f in frames]
+    else:
+        for f in frames:  # one at a time, so realtime mode does not drop any
+            slam.submit(f)
+            deadline = time.monotonic() + 120
+            while slam.stats().frames_tracked + slam.stats().frames_dropped < f.index + 1:
+                assert time.monotonic() < deadline and slam.error is None
+                time.sleep(0.02)
+        slam.finish(timeout_s=300)
+        records = list(slam.records)
+    assert [r.lost for r in records[:len(bad)]] == [True] * len(bad)
+    assert not any(r.lost for r in records[len(bad):])
+    for rec, f in zip(records[len(bad):], good, strict=True):
+        dt, _ = pose_error(rec.current_pose(), f.T_world_cam)
+        assert dt < 0.05, dt
+    assert slam.mapper.keyframes[0].T_world_cam.numpy() == pytest.approx(good[0].T_world_cam, abs=1e-5)
+    assert len(slam.mesh().faces) > 0
+
+
+def test_poses_out_of_reach_are_ignored_not_fatal(capture):
+    """A device pose 1e12 m away (a unit mistake) neither places the map nor feeds the motion prior."""
+    slam = SlamSystem(load_preset("cpu-small", TINY))
+    far = np.eye(4)
+    far[:3, 3] = 1e12
+    recs = [slam.process(f.with_(T_world_cam=None, T_world_cam_device=far)) for f in capture.frames(0, 3)]
+    assert not any(r.lost for r in recs)
+    assert np.allclose(recs[0].T_tracked, np.eye(4))  # first-camera world, not 1e12 m away
+    assert all(np.linalg.norm(r.current_pose()[:3, 3]) < 1.0 for r in recs)
