@@ -190,9 +190,11 @@ class Mapper:
         self.render_config = render
         self.loss_config = loss
         self.config = mapping
-        torch.manual_seed(seed)
         self.voxels = VoxelMap(voxel_size_m, field.embed_dim, self.device, seed=seed)
-        self.decoder = SDFDecoder(field).to(self.device)
+        with torch.random.fork_rng(devices=[]):  # seeded decoder weights without reseeding the process's RNG
+            torch.manual_seed(seed)
+            self.decoder = SDFDecoder(field)
+        self.decoder = self.decoder.to(self.device)
         self.rebuild_optimizer()
         self.keyframes: list[Keyframe] = []
         self.generator = torch.Generator().manual_seed(seed)

@@ -153,3 +153,16 @@ def test_window_colours_mask_rays_without_colour():
     assert colour.shape == (5, 3) and valid.tolist() == [True, True, True, False, False]
     assert _window_colors([rgb, rgb[:2]], depth)[1] is None
     assert _window_colors([None, None], depth) == (None, None)
+
+
+def test_a_mapper_leaves_the_process_random_state_alone():
+    """Sessions share a process: building one engine must not reseed torch's global generator."""
+    cfg = load_preset("cpu-small", TINY)
+    torch.manual_seed(1234)
+    expected = torch.rand(4)
+    torch.manual_seed(1234)
+    a = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu", seed=7)
+    torch.testing.assert_close(torch.rand(4), expected)
+    b = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu", seed=7)
+    for pa, pb in zip(a.decoder.parameters(), b.decoder.parameters(), strict=True):
+        torch.testing.assert_close(pa, pb)  # still reproducible from the seed
