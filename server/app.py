@@ -42,7 +42,8 @@ are tracked, render depth at any pose for AR occlusion, download the mesh.
 
 Errors are JSON `{"detail", "field"}`: 400 malformed frame, 401/403 token, 404 unknown session,
 409 finished/failed session or nothing to serve yet, 413 too large, 415 unknown encoding,
-422 invalid field, 429 ingest queue full (Retry-After), 503 too many sessions.
+422 invalid field or a frame no camera produces, 429 ingest queue full (Retry-After) or too many
+sessions from one client without an API key, 503 too many sessions; 500 answers are JSON too.
 """
 
 

@@ -42,7 +42,11 @@ What the binary frame format allows (``proto/README.md`` §2, §3.2, §4) stays 
 the same frames: intrinsics may be stated for another resolution of the same aspect ratio (ARKit's
 1920x1440 with 256x192 depth; they are scaled exactly, §4), and colour may be larger or smaller than the
 depth at the same aspect ratio (640x480 with 256x192 depth); the decoder resizes it to the depth's size
-(§3.2). Malformed metadata and corrupt images stay 400, unknown encodings 415.
+(§3.2). Malformed metadata and corrupt or truncated images stay 400, unknown encodings 415. Only image
+headers are read here, never pixels: an image whose header declares more pixels than Pillow's
+decompression-bomb limit (about 179 million, e.g. 30000x30000) is 413 naming the part, and one larger than the
+server's ``max_image_width`` x ``max_image_height`` is 413 when the packed message is checked
+(:func:`check_message_limits`), before anything is decoded.
 """
 
 from __future__ import annotations
@@ -104,11 +108,22 @@ def _reject_constant(name: str) -> Any:
 
 
 def _image_size(data: bytes, field: str, kind: str) -> tuple[int, int]:
+    """Width and height in pixels that an image's header states (the pixel data is not decoded).
+
+    Raises:
+        PayloadTooLargeError: the header states more pixels than Pillow's decompression-bomb limit
+            (``2 * Image.MAX_IMAGE_PIXELS``, about 179 million), far beyond any server's image limit (413).
+        FrameDecodeError: not a readable image: truncated, corrupt or unknown header (400).
+    """
     try:
         with Image.open(io.BytesIO(data)) as im:
             return int(im.size[0]), int(im.size[1])
+    except Image.DecompressionBombError as e:
+        raise PayloadTooLargeError(f"the {kind} header declares an image too large to accept ({e})", field) from e
     except (UnidentifiedImageError, OSError, ValueError) as e:
         raise FrameDecodeError(field, f"not a readable {kind} image ({e})") from e
+    except Exception as e:  # noqa: BLE001 - Pillow raises many types for corrupt headers; all mean the same here
+        raise FrameDecodeError(field, f"not a readable {kind} image ({type(e).__name__}: {e})") from e
 
 
 def _sniff(data: bytes) -> str | None:
@@ -218,6 +233,7 @@ def message_from_multipart(metadata: bytes | str, depth: UploadPart, color: Uplo
             message is fully checked later by :func:`decode_frame`.
         ValidationError: an image does not match the sizes the upload declares (module docstring; 422,
             ``field`` is ``depth``, ``color`` or ``confidence``).
+        PayloadTooLargeError: an image header declares a decompression bomb (413, ``field`` names the part).
     """
     meta = _parse_metadata(metadata)
     for key in ("seq", "timestamp_s", "intrinsics"):

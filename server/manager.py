@@ -1,8 +1,15 @@
 """The session manager: the one API every transport (HTTP routes, the zenoh bridge) drives.
 
 It owns the metadata database, the open :class:`~.session.Session` objects, stored outputs of finished
-sessions, pose listeners, and a housekeeping thread (failure detection, periodic checkpoints). Every
-method is synchronous and thread-safe; HTTP routes call them from the thread pool.
+sessions, pose listeners, and a housekeeping thread (failure detection, periodic checkpoints, closing idle
+sessions). Every method is synchronous and thread-safe; HTTP routes call them from the thread pool.
+
+Slots: at most ``max_sessions`` sessions are open (hold an engine) at once, and at most
+``max_sessions_per_client`` of them may have been created without an API key by one client address from
+beyond loopback (``create_session(client=...)``). A session that has received no frame for
+``session_idle_timeout_s`` is closed the way a server shutdown closes it (map checkpointed, recording kept,
+state in the database unchanged) and frees its slot; ``last_error`` says so, and its next frame or
+:meth:`SessionManager.resume` replays its recording, as after a restart.
 
 Example (what the zenoh bridge does)::
 
@@ -18,6 +25,7 @@ from __future__ import annotations
 import logging
 import shutil
 import threading
+import time
 from collections import Counter
 from typing import Any
 
@@ -36,6 +44,7 @@ from .errors import (
     ServerError,
     SessionConflictError,
     SessionNotFoundError,
+    TooManyClientSessionsError,
     TooManySessionsError,
     error_status,
 )
@@ -54,6 +63,8 @@ log = logging.getLogger("voxfusion.server")
 MESH_FORMATS = ("ply", "glb", "obj")
 VOXEL_FORMATS = ("npz", "ply")
 _OPEN_STATES = {SessionState.created.value, SessionState.running.value, SessionState.finishing.value}
+_IDLE_STATES = (SessionState.created, SessionState.running)
+"""States in which an open session may be closed for idleness (never while it finishes)."""
 _SERVER_KEYS = ("device", "mode")
 
 
@@ -74,6 +85,14 @@ class SessionManager:
         self._store: SessionStore | None = None
         self._stop = threading.Event()
         self._housekeeper: threading.Thread | None = None
+        self._last_frame: dict[str, float] = {}
+        """Open session id -> ``time.monotonic()`` of its last accepted frame (or its creation / resume)."""
+        self._pins: Counter[str] = Counter()
+        """Open session id -> calls using its :class:`Session` right now (ingest, finish): never closed idle."""
+        self._closing: dict[str, threading.Event] = {}
+        """Session id -> set once its idle close is done (resume and delete wait for it)."""
+        self._owners: dict[str, str] = {}
+        """Session id -> the client address that created it without an API key from beyond loopback."""
 
     # ------------------------------------------------------------------ lifecycle of the manager
     def open(self) -> None:
@@ -98,6 +117,10 @@ class SessionManager:
         if self._housekeeper is not None:
             self._housekeeper.join(timeout=10)
         with self._lock:
+            closing = list(self._closing.values())
+        for done in closing:  # an idle close the housekeeper had started
+            done.wait(timeout=60)
+        with self._lock:
             sessions = list(self._open.values())
             self._open.clear()
         for s in sessions:
@@ -120,6 +143,81 @@ class SessionManager:
                     s.poll()
                 except Exception:  # noqa: BLE001 - housekeeping must go on for the other sessions
                     log.exception("housekeeping of session %s failed", s.id)
+            try:
+                self.close_idle_sessions()
+            except Exception:  # noqa: BLE001 - retried on the next round
+                log.exception("closing idle sessions failed")
+
+    def close_idle_sessions(self, now: float | None = None) -> list[str]:
+        """Close every open session that has received no frame for ``session_idle_timeout_s`` seconds
+        (``now``: ``time.monotonic()`` seconds) and has none in flight; returns their ids.
+
+        A closed session is left exactly as a server shutdown leaves it (map checkpointed, recording kept,
+        state unchanged in the database, listed with ``resume_required``); its slot is free, and
+        ``last_error`` says why it was closed. Called by the housekeeping thread.
+        """
+        timeout = self.settings.session_idle_timeout_s
+        if timeout <= 0:
+            return []
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            candidates = [(sid, s) for sid, s in self._open.items()
+                          if s.state in _IDLE_STATES and not self._pins[sid]
+                          and now - self._last_frame.setdefault(sid, now) >= timeout]
+        closed = []
+        for sid, s in candidates:
+            st = s.status()  # outside the lock: reads the engine's counters
+            with self._lock:
+                if st.frames_queued or st.replay_pending:  # still working through received frames: not idle
+                    self._last_frame[sid] = now
+                    continue
+                if (self._open.get(sid) is not s or s.state not in _IDLE_STATES or self._pins[sid]
+                        or now - self._last_frame.get(sid, now) < timeout):
+                    continue  # a frame, a finish or a delete came in meanwhile
+                del self._open[sid]
+                self._last_frame.pop(sid, None)
+                done = self._closing[sid] = threading.Event()
+            try:
+                s.close(checkpoint=True)
+                if s.state in _IDLE_STATES:  # not failed meanwhile (that wrote its own state and error)
+                    self.store.set_state(sid, s.state.value, last_error=(
+                        f"closed after {timeout:g} s without a frame (--session-idle-timeout-s); its recording "
+                        f"and map are kept: send a frame or POST /sessions/{sid}/resume to continue (the "
+                        "recording is replayed), or DELETE the session"))
+            finally:
+                with self._lock:
+                    self._closing.pop(sid, None)
+                done.set()
+            closed.append(sid)
+            self.counters[("sessions_idle_closed_total", "")] += 1
+            log.info("session %s closed: no frame for %g s (state %s kept; it resumes on its next frame)",
+                     sid, timeout, s.state.value)
+        return closed
+
+    def _wait_closed(self, session_id: str) -> None:
+        """Wait (without the lock) until an idle close of ``session_id`` in progress is done."""
+        while True:
+            with self._lock:
+                done = self._closing.get(session_id)
+            if done is None:
+                return
+            done.wait(timeout=60)
+
+    def _pin(self, session_id: str) -> Session | None:
+        """The open session, pinned (never closed for idleness) until :meth:`_unpin`; ``None`` if not open."""
+        with self._lock:
+            s = self._open.get(session_id)
+            if s is not None:
+                self._pins[session_id] += 1
+            return s
+
+    def _unpin(self, session_id: str, got_frame: bool = False) -> None:
+        with self._lock:
+            self._pins[session_id] -= 1
+            if self._pins[session_id] <= 0:
+                del self._pins[session_id]
+            if got_frame and session_id in self._open:
+                self._last_frame[session_id] = time.monotonic()
 
     # ------------------------------------------------------------------ identity and access
     def _build_config(self, preset: str | None, overrides: dict[str, Any] | None) -> tuple[str, VoxFusionConfig]:
@@ -153,23 +251,49 @@ class SessionManager:
             raise TooManySessionsError(f"the server holds its maximum of {self.settings.max_sessions} open sessions; "
                                   "finish or delete one, or retry later")
 
+    def _check_client_capacity(self, client: str | None) -> None:
+        """Raise :class:`TooManyClientSessionsError` when ``client`` (an address that creates sessions
+        without an API key; ``None``: not limited) holds ``max_sessions_per_client`` open sessions."""
+        limit = self.settings.max_sessions_per_client
+        if client is None or limit == 0:
+            return
+        held = sum(1 for sid, s in self._open.items() if s.is_open and self._owners.get(sid) == client)
+        if held >= limit:
+            idle = self.settings.session_idle_timeout_s
+            freed = f"; sessions without frames are closed after {idle:g} s" if idle > 0 else ""
+            raise TooManyClientSessionsError(
+                f"{client} holds its maximum of {limit} open sessions created without an API key: finish "
+                f"(POST /sessions/<id>/finish) or delete one of them first{freed}. Servers with an API key "
+                "(VOXFUSION_API_KEY) have no per-client limit; --max-sessions-per-client changes it")
+
     def create_session(self, name: str | None = None, overrides: dict[str, Any] | None = None, *,
-                       preset: str | None = None, mode: SessionMode | str = SessionMode.realtime) -> tuple[str, str]:
+                       preset: str | None = None, mode: SessionMode | str = SessionMode.realtime,
+                       client: str | None = None) -> tuple[str, str]:
         """Create a session; returns ``(id, token)`` (the token is shown only here).
+
+        ``client``: the address of a client creating it without an API key from beyond loopback (see
+        :func:`~voxfusion.server.api.deps.anonymous_client`); such a client may hold at most
+        ``max_sessions_per_client`` open sessions (also counted when one of them resumes). ``None``: not
+        limited (API key holders, loopback, the zenoh bridge).
 
         Raises:
             ValidationError / ConfigError: unknown preset or bad override (422; ``field`` names the key).
+            TooManyClientSessionsError: ``client`` holds ``max_sessions_per_client`` open sessions (429).
             TooManySessionsError: ``max_sessions`` are open (503).
         """
         mode = SessionMode(mode)
         preset, cfg = self._build_config(preset, overrides)
         with self._lock:
+            self._check_client_capacity(client)
             self._check_capacity()
             sid, token = new_session_id(), new_token()
             row = self.store.insert(sid, name, hash_token(token), preset, config_to_dict(cfg), mode.value,
                                     SessionState.created.value)
             self._listeners.setdefault(sid, [])
             self._open[sid] = self._new_session(row, cfg, replay=False)
+            self._last_frame[sid] = time.monotonic()
+            if client is not None:
+                self._owners[sid] = client
         self.counters[("sessions_created_total", "")] += 1
         log.info("session %s created (preset %s, mode %s)", sid, preset, mode.value)
         return sid, token
@@ -197,15 +321,17 @@ class SessionManager:
 
     # ------------------------------------------------------------------ frames
     def _session_for_ingest(self, session_id: str) -> Session:
-        with self._lock:
-            s = self._open.get(session_id)
-            if s is not None:
-                return s
+        """The open session (resumed first if it was closed: restart, idle), pinned: :meth:`_unpin` it."""
+        s = self._pin(session_id)
+        if s is not None:
+            return s
         row = self.get(session_id)
         if row.state in _OPEN_STATES:
             self.resume(session_id)
-            with self._lock:
-                return self._open[session_id]
+            s = self._pin(session_id)
+            if s is None:  # deleted meanwhile
+                raise SessionNotFoundError(session_id)
+            return s
         raise SessionConflictError(f"session {session_id} is {row.state}; it takes no more frames", "session_id")
 
     def submit_frame(self, session_id: str, data: bytes) -> tuple[int, bool]:
@@ -224,7 +350,12 @@ class SessionManager:
                                       f"{self.settings.max_frame_bytes}", "body")
             check_message_limits(data, self.settings.max_image_width, self.settings.max_image_height)
             session = self._session_for_ingest(session_id)
-            seq, duplicate = session.ingest(data)
+            accepted = False
+            try:
+                seq, duplicate = session.ingest(data)
+                accepted = True
+            finally:
+                self._unpin(session_id, got_frame=accepted)
         except Exception as e:
             self.counters[("frames_rejected_total", str(error_status(e)))] += 1
             raise
@@ -362,6 +493,7 @@ class SessionManager:
         :class:`TooManySessionsError` when no slot is free.
         """
         row = self.get(session_id)
+        self._wait_closed(session_id)
         with self._lock:
             s = self._open.get(session_id)
             if s is not None and s.is_open:
@@ -369,12 +501,14 @@ class SessionManager:
             row = self.get(session_id)
             if row.state == SessionState.finished.value:
                 raise SessionConflictError(f"session {session_id} is finished; nothing to resume", "session_id")
+            self._check_client_capacity(self._owners.get(session_id))
             self._check_capacity()
             if s is not None:
                 self._open.pop(session_id)
                 s.close(checkpoint=False)
             cfg = self._server_config(config_from_dict(VoxFusionConfig, row.config))
             s = self._open[session_id] = self._new_session(row, cfg, replay=True)
+            self._last_frame[session_id] = time.monotonic()
             self._stored.pop(session_id, None)
             self.store.set_state(session_id, s.state.value, last_error="")
         self.counters[("sessions_resumed_total", "")] += 1
@@ -388,7 +522,7 @@ class SessionManager:
         resumed (its recording replayed) first. Raises :class:`SessionConflictError` for a failed session.
         """
         row = self.get(session_id)
-        s = self._open_session(session_id)
+        s = self._pin(session_id)
         if s is None:
             if row.state == SessionState.finished.value:
                 return self.status(session_id)
@@ -396,22 +530,30 @@ class SessionManager:
                 raise SessionConflictError(f"session {session_id} is {row.state}: it cannot be finished "
                                       f"({row.last_error})", "session_id")
             self.resume(session_id)
-            s = self._open_session(session_id)
+            s = self._pin(session_id)
             if s is None:
                 raise SessionNotFoundError(session_id)
-        status = s.finish(self.settings.finish_timeout_s if timeout_s is None else timeout_s)
+        try:
+            status = s.finish(self.settings.finish_timeout_s if timeout_s is None else timeout_s)
+        finally:
+            self._unpin(session_id)
         with self._lock:
             if self._open.get(session_id) is s:
                 del self._open[session_id]
+                self._last_frame.pop(session_id, None)
+                self._owners.pop(session_id, None)
         return status
 
     def delete(self, session_id: str) -> None:
         """Stop the session (if open) and delete its metadata, recording and outputs."""
         self.get(session_id)
+        self._wait_closed(session_id)
         with self._lock:
             s = self._open.pop(session_id, None)
             self._stored.pop(session_id, None)
             self._listeners.pop(session_id, None)
+            self._last_frame.pop(session_id, None)
+            self._owners.pop(session_id, None)
         if s is not None:
             s.close(checkpoint=False)
         self.store.delete(session_id)

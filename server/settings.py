@@ -42,6 +42,15 @@ class ServerSettings:
     """Replaces the config's ``listen/endpoints`` (e.g. ``("tcp/0.0.0.0:7447",)`` for every interface)."""
     max_sessions: int = 8
     """Open sessions (created, running or finishing) held at once; more are refused with 503."""
+    max_sessions_per_client: int = 2
+    """Open sessions one client address may hold when it creates them without an API key (i.e. the server
+    has none) and is not on loopback; more are refused with 429. ``0``: no per-client limit. The address is
+    the TCP peer's, or ``X-Forwarded-For`` from a proxy uvicorn trusts (environment ``FORWARDED_ALLOW_IPS``,
+    default 127.0.0.1); IPv6 clients are counted by their /64."""
+    session_idle_timeout_s: float = 600.0
+    """A session that has received no frame (or was created or resumed and got none) for this many seconds
+    is closed as at a server restart: its map checkpointed, its recording kept, its slot freed; it resumes
+    on its next frame or ``POST /resume``. ``0``: never."""
     max_frame_bytes: int = 32 * 1024 * 1024
     """Largest request body (a frame message or multipart upload); larger ones get 413."""
     max_image_width: int = 4096
@@ -75,6 +84,12 @@ class ServerSettings:
         for name in ("checkpoint_interval_s", "finish_timeout_s"):
             if not getattr(self, name) > 0:
                 raise ConfigError(name, f"must be > 0 seconds, got {getattr(self, name)}")
+        if self.max_sessions_per_client < 0:
+            raise ConfigError("max_sessions_per_client",
+                              f"must be >= 0 (0: no limit), got {self.max_sessions_per_client}")
+        if not 0 <= self.session_idle_timeout_s < float("inf"):
+            raise ConfigError("session_idle_timeout_s", "must be >= 0 seconds (0: never), got "
+                                                        f"{self.session_idle_timeout_s}")
         if self.api_key is not None and len(self.api_key) < 8:
             raise ConfigError("api_key", "must be at least 8 characters")
 

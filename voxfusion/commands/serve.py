@@ -37,6 +37,12 @@ def serve_command(
         "--zenoh-listen", help="zenoh endpoint to listen on, replacing the config's (repeatable; e.g. "
                                "tcp/0.0.0.0:7447 for every interface). Implies --zenoh.")] = None,
     max_sessions: Annotated[int, typer.Option(help="Open sessions held at once (more get 503).")] = 8,
+    max_sessions_per_client: Annotated[int, typer.Option(
+        help="Open sessions one client address beyond loopback may hold when the server has no API key (more "
+             "get 429; 0: no limit).")] = 2,
+    session_idle_timeout_s: Annotated[float, typer.Option(
+        help="Close a session that received no frame for this many seconds (map checkpointed, recording kept, "
+             "slot freed; it resumes on its next frame or POST /resume). 0: never.")] = 600.0,
     max_frame_mb: Annotated[float, typer.Option(help="Largest request body in MiB (more get 413).")] = 32.0,
     max_pending_frames: Annotated[int, typer.Option(help="Per-session ingest queue bound (more get 429).")] = 32,
     checkpoint_interval_s: Annotated[float, typer.Option(help="Periodic map checkpoint interval.")] = 30.0,
@@ -57,7 +63,8 @@ def serve_command(
         data_dir=data_dir, device=device, default_preset=config,
         zenoh=True if zenoh_listen else zenoh, zenoh_config=zenoh_config,
         zenoh_listen=tuple(zenoh_listen) if zenoh_listen else None,
-        max_sessions=max_sessions, max_frame_bytes=int(max_frame_mb * 1024 * 1024),
+        max_sessions=max_sessions, max_sessions_per_client=max_sessions_per_client,
+        session_idle_timeout_s=session_idle_timeout_s, max_frame_bytes=int(max_frame_mb * 1024 * 1024),
         max_pending_frames=max_pending_frames, checkpoint_interval_s=checkpoint_interval_s)
     typer.echo(f"voxfusion server on http://{host}:{port} (docs: /docs), data in {data_dir}")
     uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level.lower(), timeout_graceful_shutdown=30)

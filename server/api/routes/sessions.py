@@ -11,7 +11,7 @@ from fastapi import APIRouter, Body, Query, Response, status
 from voxfusion.proto.api_extra import SessionListOut, SessionStatusOut
 from voxfusion.proto.schemas import ErrorOut, SessionCreate, SessionCreated, SessionState
 
-from ..deps import ApiKeyDep, ManagerDep, SessionIdDep
+from ..deps import AnonymousClientDep, ApiKeyDep, ManagerDep, SessionIdDep
 
 __all__ = ["router"]
 
@@ -22,13 +22,14 @@ router = APIRouter(tags=["sessions"], responses={401: {"model": ErrorOut}, 403: 
 
 
 @router.post("/sessions", status_code=status.HTTP_201_CREATED, response_model=SessionCreated,
-             responses={422: {"model": ErrorOut}, 503: {"model": ErrorOut}})
-def create_session(manager: ManagerDep, _: ApiKeyDep,
+             responses={422: {"model": ErrorOut}, 429: {"model": ErrorOut}, 503: {"model": ErrorOut}})
+def create_session(manager: ManagerDep, _: ApiKeyDep, client: AnonymousClientDep,
                    body: Annotated[SessionCreate | None, Body()] = None) -> SessionCreated:
     """Create a session (engine preset, config overrides, realtime/offline mode); returns its id and its
-    bearer token (shown only here). Requires the server API key when one is configured."""
+    bearer token (shown only here). Requires the server API key when one is configured; without one, a
+    client beyond loopback may hold ``--max-sessions-per-client`` open sessions (more: 429)."""
     body = body or SessionCreate()
-    sid, token = manager.create_session(body.name, body.config, preset=body.preset, mode=body.mode)
+    sid, token = manager.create_session(body.name, body.config, preset=body.preset, mode=body.mode, client=client)
     return SessionCreated(id=sid, token=token)
 
 
@@ -69,10 +70,11 @@ def finish_session(session_id: SessionIdDep, manager: ManagerDep, response: Resp
 
 
 @router.post("/sessions/{session_id}/resume", status_code=status.HTTP_202_ACCEPTED, response_model=SessionStatusOut,
-             responses={409: {"model": ErrorOut}, 503: {"model": ErrorOut}})
+             responses={409: {"model": ErrorOut}, 429: {"model": ErrorOut}, 503: {"model": ErrorOut}})
 def resume_session(session_id: SessionIdDep, manager: ManagerDep) -> SessionStatusOut:
-    """Replay the recording of a session that was open when the server stopped (or that failed) through
-    a new engine; the session then takes frames again. No-op for a running session."""
+    """Replay the recording of a session that was open when the server stopped, that was closed for
+    idleness (``--session-idle-timeout-s``) or that failed, through a new engine; the session then takes
+    frames again. No-op for a running session."""
     return manager.resume(session_id)
 
 
