@@ -430,7 +430,7 @@ class SlamSystem:
                     raise SlamError(f"{th.name} did not finish within {timeout_s} s")
             self._threads = []
         self._raise_if_failed()
-        if self.mapper is not None:
+        if self.mapper is not None and self.mapper.keyframes:  # no usable frame yet: no map to finish
             self.mapper.finish()
             self._publish()
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import logging
 import re
 import secrets
 import uuid
@@ -19,6 +20,7 @@ import uuid
 from .errors import ForbiddenError, SessionNotFoundError, UnauthorizedError
 
 __all__ = [
+    "RedactTokens",
     "SESSION_ID_RE",
     "new_session_id",
     "check_session_id",
@@ -82,3 +84,17 @@ def bearer_token(authorization: str | None) -> str | None:
     if scheme.lower() != "bearer" or not value.strip():
         return None
     return value.strip()
+
+
+class RedactTokens(logging.Filter):
+    """A logging filter that hides ``token=...`` query values (the viewer link and the pose WebSocket carry
+    the session token there) in log records, e.g. uvicorn's access log: ``token=***``."""
+
+    _TOKEN = re.compile(r"(token=)[^&\s\"']+")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.args, tuple):
+            record.args = tuple(self._TOKEN.sub(r"\1***", a) if isinstance(a, str) else a for a in record.args)
+        if isinstance(record.msg, str):
+            record.msg = self._TOKEN.sub(r"\1***", record.msg)
+        return True

@@ -60,7 +60,7 @@ def last_recorded_frame(recording: Path) -> LatestFrame | None:
     return _last_recorded(str(recording), st.st_size, st.st_mtime_ns)
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=2)  # decoded frames are large (up to 4096x4096): keep the newest few
 def _last_recorded(path: str, _size: int, _mtime_ns: int) -> LatestFrame | None:
     recording = Path(path)
     scan = scan_recording(recording)

@@ -183,7 +183,7 @@ class SessionManager:
                     self.store.set_state(sid, s.state.value, last_error=(
                         f"closed after {timeout:g} s without a frame (--session-idle-timeout-s); its recording "
                         f"and map are kept: send a frame or POST /sessions/{sid}/resume to continue (the "
-                        "recording is replayed), or DELETE the session"))
+                        "recording is replayed), or DELETE the session"), stats=s.status().model_dump(mode="json"))
             finally:
                 with self._lock:
                     self._closing.pop(sid, None)

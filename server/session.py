@@ -415,7 +415,7 @@ class Session:
                 # Always let the engine drain its queue: a realtime session finished before its first frame
                 # was tracked has no mapper yet, but frames waiting for the tracker.
                 self.slam.finish(timeout_s=max(1.0, deadline - time.monotonic()))
-                if self.slam.mapper is not None:
+                if self.slam.mapper is not None and self.slam.mapper.keyframes:  # a map exists (some frame was usable)
                     self.write_checkpoint(from_snapshot=False)
                     mesh = self.slam.mesh()
                     atomic_write_bytes(self.folder / MESH_FILE, mesh_bytes(mesh, "ply"))

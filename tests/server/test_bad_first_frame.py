@@ -80,3 +80,16 @@ def test_bad_first_frames_never_fail_the_session(server_factory, scene, mode):
     assert st["state"] == "running" and st["last_error"] is None, st
     r = srv2.api.http.post(f"/sessions/{sid}/finish", headers=srv2.api.auth(token))
     assert r.status_code == 200 and r.json()["state"] == "finished", r.text
+
+
+@pytest.mark.parametrize("mode", ["offline", "realtime"])
+def test_a_session_of_only_unusable_frames_finishes_cleanly(server_factory, scene, mode):
+    srv = server_factory()
+    sid, token = srv.api.create(config=TINY, mode=mode)
+    empty = scene.capture[0].with_(depth_m=np.zeros_like(scene.capture[0].depth_m))
+    for seq in range(3):
+        message = encode_frame(empty, seq=seq, depth_encoding="png16_mm", color_encoding="jpeg")
+        assert srv.api.post_frame(sid, token, message).status_code == 202
+    r = srv.api.http.post(f"/sessions/{sid}/finish", headers=srv.api.auth(token))
+    assert r.status_code == 200 and r.json()["state"] == "finished", r.text
+    assert srv.api.http.get(f"/sessions/{sid}/mesh", headers=srv.api.auth(token)).status_code == 409

@@ -153,6 +153,7 @@ def test_viewer_shows_the_scan_growing_in_chromium(server_factory):
         wait_until(lambda: int(viewer_value(driver, "meshVersion") or 0) > first_version, 240,
                    "the viewer to load a newer mesh", 0.5)
         wait_until(lambda: int(viewer_value(driver, "poses") or 0) >= 12, 120, "more poses in the viewer", 0.5)
+        assert int(viewer_value(driver, "livePoses") or 0) > 0, "no pose came over the WebSocket (CSP?)"
         later = screenshot(driver)
         _keep_screenshot(driver, "later")
         diff = np.abs(_scene_region(later) - _scene_region(first)).mean()

@@ -67,6 +67,10 @@ def serve_command(
         session_idle_timeout_s=session_idle_timeout_s, max_frame_bytes=int(max_frame_mb * 1024 * 1024),
         max_pending_frames=max_pending_frames, checkpoint_interval_s=checkpoint_interval_s)
     typer.echo(f"voxfusion server on http://{host}:{port} (docs: /docs), data in {data_dir}")
+    from voxfusion.server.auth import RedactTokens
+
+    for name in ("uvicorn.access", "uvicorn.error"):  # the viewer link and the pose WebSocket carry ?token=
+        logging.getLogger(name).addFilter(RedactTokens())
     uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level.lower(), timeout_graceful_shutdown=30)
 
 

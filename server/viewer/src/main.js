@@ -87,17 +87,16 @@ class Viewer {
   async refreshFrame() {
     const info = await this.api.latestFrame();
     if (info.seq === this.frameSeq) return;
-    this.frameSeq = info.seq;
     this.intrinsics = info;
-    view.frameSeq = info.seq;
     const depth = await this.api.image('/frames/latest/depth.png');
     if (depth) panel.setImage('depth', depth);
+    panel.showColour(info.has_colour);
     if (info.has_colour) {
       const colour = await this.api.image('/frames/latest/colour.jpg');
       if (colour) panel.setImage('colour', colour);
-    } else {
-      panel.hideColour();
     }
+    this.frameSeq = info.seq;  // only once shown: a failed image fetch is retried at the next look
+    view.frameSeq = info.seq;
     if (this.lastPose) this.scene.setCamera(this.lastPose.T_world_cam, this.intrinsics);
   }
 
@@ -115,8 +114,14 @@ class Viewer {
     const mesh = await this.api.mesh();
     const wait = MESH_DUTY * (performance.now() - started);
     if (!mesh) return wait;
-    this.scene.setWorldFrame((await this.api.meshFrame()).T_world_file);
-    const counts = this.scene.setMesh(mesh.bytes);
+    let counts;
+    try {
+      this.scene.setWorldFrame((await this.api.meshFrame()).T_world_file);
+      counts = this.scene.setMesh(mesh.bytes);
+    } catch (e) {
+      this.api.etags.delete('mesh');  // not shown: fetch it again rather than be told "not modified"
+      throw e;
+    }
     this.meshVersion = mesh.version;
     view.meshVersion = mesh.version;
     view.meshVertices = counts.vertices;

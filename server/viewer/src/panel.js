@@ -52,7 +52,8 @@ export class Panel {
     if (old.startsWith('blob:')) URL.revokeObjectURL(old);
   }
 
-  hideColour() { this.doc.getElementById('colour-figure').hidden = true; }
+  /** Show the colour view only while the newest frame has colour (3D Scanner App: every third frame). */
+  showColour(shown) { this.doc.getElementById('colour-figure').hidden = !shown; }
 
   showError(message) { this.error.textContent = message || ''; }
 }

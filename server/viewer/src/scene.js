@@ -108,7 +108,10 @@ export class SessionScene {
 
   /** The current camera: a frustum from the newest frame's intrinsics at `T_world_cam` (OpenCV axes). */
   setCamera(T_world_cam, intrinsics) {
-    if (intrinsics) this.frustum.geometry = frustumGeometry(intrinsics, FRUSTUM_DEPTH_M);
+    if (intrinsics) {
+      this.frustum.geometry.dispose();
+      this.frustum.geometry = frustumGeometry(intrinsics, FRUSTUM_DEPTH_M);
+    }
     this.frustum.matrix.copy(rowMajor(T_world_cam));
     this.frustum.matrixWorldNeedsUpdate = true;
     this.frustum.visible = true;
