@@ -156,6 +156,7 @@ class SlamSystem:
         self._latencies: deque[float] = deque(maxlen=100)
         self._streams: dict[str, torch.cuda.Stream] = {}
         self._good_tail: deque[FrameRecord] = deque(maxlen=2)  # the last two frames not lost, for priors
+        self._first_good: FrameRecord | None = None  # the frame the map started with (world_axes)
 
     # ------------------------------------------------------------------ shared helpers
     def _init_engine(self, frame: RGBDFrame) -> None:
@@ -193,8 +194,8 @@ class SlamSystem:
         with self._lock:
             poses = np.stack([r.current_pose() for r in self.records if not r.lost] or
                              [r.current_pose() for r in self.records[:1]] or [np.eye(4)])
-            good = [r for r in self.records[:64] if not r.lost]  # the first frames may have been unusable
-            first = (good or self.records)[0].current_pose() if self.records else None
+            first_rec = self._first_good or (self.records[0] if self.records else None)  # first frames may be lost
+            first = first_rec.current_pose() if first_rec is not None else None
         up, forward = camera_up_forward(poses)
         world = self._world
         if self._gravity_y_up:  # ARKit-style world: +y is up
@@ -243,8 +244,9 @@ class SlamSystem:
         intrinsics (:func:`.frame_checks.intrinsics_problem`), or, before the map exists, fewer than
         :data:`.frame_checks.MIN_INIT_VALID_PIXELS` valid depth pixels (the map starts with the first usable
         frame). Reference / device poses out of reach (:func:`.frame_checks.pose_problem`) are ignored."""
-        frame = frame.with_(T_world_cam=usable_pose(frame.T_world_cam),
-                            T_world_cam_device=usable_pose(frame.T_world_cam_device))
+        T_ref, T_dev = usable_pose(frame.T_world_cam), usable_pose(frame.T_world_cam_device)
+        if T_ref is not frame.T_world_cam or T_dev is not frame.T_world_cam_device:  # rare: copy only then
+            frame = frame.with_(T_world_cam=T_ref, T_world_cam_device=T_dev)
         if self.mapper is None:
             self._init_engine(frame)
         data = self._to_device(frame)
@@ -281,6 +283,7 @@ class SlamSystem:
             self.records.append(rec)
         if not rec.lost:
             self._good_tail.append(rec)
+            self._first_good = self._first_good or rec
         if self.on_pose is not None:
             self.on_pose(rec)
         return rec
