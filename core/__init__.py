@@ -8,6 +8,8 @@ from .errors import (
     CaptureError,
     CaptureFormatError,
     ConfigError,
+    EngineFailedError,
+    MapNotReadyError,
     ShapeError,
     ValidationError,
     VoxFusionError,
@@ -21,6 +23,8 @@ __all__ = [
     "CaptureError",
     "CaptureFormatError",
     "ConfigError",
+    "MapNotReadyError",
+    "EngineFailedError",
     "ShapeError",
     "ValidationError",
 ]

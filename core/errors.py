@@ -15,11 +15,27 @@ __all__ = [
     "ConfigError",
     "ShapeError",
     "ValidationError",
+    "MapNotReadyError",
+    "EngineFailedError",
 ]
 
 
+def _rebuild_error(cls: type[VoxFusionError], args: tuple, state: dict) -> VoxFusionError:
+    error = cls.__new__(cls)
+    error.args = args
+    error.__dict__.update(state)
+    return error
+
+
 class VoxFusionError(Exception):
-    """Base class of every error voxfusion raises on purpose."""
+    """Base class of every error voxfusion raises on purpose.
+
+    Errors pickle with their attributes (``field``, ``path``, ...), whatever their constructor takes, so a
+    session worker process can raise them in the API process.
+    """
+
+    def __reduce__(self) -> tuple:
+        return _rebuild_error, (type(self), self.args, dict(self.__dict__))
 
 
 class ValidationError(VoxFusionError, ValueError):
@@ -55,3 +71,16 @@ class CaptureError(VoxFusionError):
 
 class CaptureFormatError(CaptureError):
     """A capture folder or file does not have the layout its reader expects."""
+
+
+class MapNotReadyError(VoxFusionError):
+    """The map is empty (no frame has been mapped yet): nothing to render, mesh or export."""
+
+
+class EngineFailedError(VoxFusionError):
+    """The engine (a tracking or mapping worker) failed; the message carries the original error, and
+    ``record`` the recording position of the frame it was working on, when known."""
+
+    def __init__(self, message: str, record: int | None = None) -> None:
+        self.record = record
+        super().__init__(message)

@@ -35,7 +35,7 @@ import torch
 import trimesh
 
 from .datasets.frame import RGBDFrame
-from .errors import ValidationError, VoxFusionError
+from .errors import EngineFailedError, MapNotReadyError, ValidationError
 from .field import SDFDecoder
 from .frame_checks import MIN_INIT_VALID_PIXELS, intrinsics_problem, usable_pose
 from .framedata import FrameData, frame_to_device
@@ -49,13 +49,9 @@ from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
 from .trajectory import Trajectory
 from .voxels import VoxelMap
 
-__all__ = ["SlamError", "FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem"]
+__all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem"]
 
 log = logging.getLogger("voxfusion.slam")
-
-
-class SlamError(VoxFusionError):
-    """A worker failed; the message carries the original error."""
 
 
 @dataclass
@@ -430,7 +426,7 @@ class SlamSystem:
             for th in self._threads:
                 th.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
                 if th.is_alive():
-                    raise SlamError(f"{th.name} did not finish within {timeout_s} s")
+                    raise EngineFailedError(f"{th.name} did not finish within {timeout_s} s")
             self._threads = []
         self._raise_if_failed()
         if self.mapper is not None and self.mapper.keyframes:  # no usable frame yet: no map to finish
@@ -451,7 +447,7 @@ class SlamSystem:
 
     def _raise_if_failed(self) -> None:
         if self.error is not None:
-            raise SlamError(f"SLAM worker failed: {type(self.error).__name__}: {self.error}") from self.error
+            raise EngineFailedError(f"SLAM worker failed: {type(self.error).__name__}: {self.error}") from self.error
 
     # ------------------------------------------------------------------ outputs
     @property
@@ -490,7 +486,7 @@ class SlamSystem:
         """Depth (and colour) rendered from the newest snapshot at a camera pose (AR occlusion)."""
         snap = self.snapshot
         if snap is None:
-            raise ValidationError("map", "the map is empty: no frame has been mapped yet")
+            raise MapNotReadyError("the map is empty: no frame has been mapped yet")
         return render_depth_image(snap.voxels, snap.decoder, K, T_world_cam, width, height, self.config.render)
 
     def mesh(self, mesh_res: int | None = None, snapshot: MapSnapshot | None = None) -> trimesh.Trimesh:
@@ -500,7 +496,7 @@ class SlamSystem:
         newer one meanwhile."""
         snap = self.snapshot if snapshot is None else snapshot
         if snap is None:
-            raise ValidationError("map", "the map is empty: no frame has been mapped yet")
+            raise MapNotReadyError("the map is empty: no frame has been mapped yet")
         res = self.config.mesh_res if mesh_res is None else int(mesh_res)
         key = (snap.version, res)
         cached = self._mesh_cache.get(key)

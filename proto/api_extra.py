@@ -25,6 +25,11 @@ class SessionStatusOut(SessionStatus):
     """Frames accepted but not yet handed to tracking (the bounded ingest queue)."""
     frames_lost: int = Field(0, ge=0)
     """Tracked frames whose tracking failed (their pose is the motion model's guess; they are not fused)."""
+    worker_pid: int | None = None
+    """Process id of the session's engine worker on the server (``None``: none, or engines on threads)."""
+    worker_restarts: int = Field(0, ge=0)
+    """How often the session's worker process died (killed, crashed) and was restarted, replaying the
+    recording, since the session was opened."""
 
 
 class SessionListOut(_Model):

@@ -25,6 +25,7 @@ Example::
 
 from __future__ import annotations
 
+import mmap
 import os
 import struct
 import threading
@@ -48,6 +49,7 @@ __all__ = [
     "scan_recording",
     "iter_messages",
     "RecordingWriter",
+    "RecordingReader",
     "RecordingCapture",
     "find_recording",
 ]
@@ -239,6 +241,88 @@ class RecordingWriter:
                 os.close(self._fd)
 
     def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class RecordingReader:
+    """Reads the records of a recording that another process keeps appending to, in order, without copying
+    them: the file is memory-mapped (the page cache's pages, the very ones the writer's ``write`` filled) and
+    each message is a read-only ``memoryview`` of that mapping. The session worker reads its frames this way.
+
+    Only records the writer has finished are read: call :meth:`next` for record ``i`` only once the writer's
+    :meth:`RecordingWriter.append` of it returned (a server tells its worker how many records exist).
+    A view stays valid as long as it is referenced, also after the reader maps a longer file or is closed.
+
+    Args:
+        path: the ``.vxr`` file.
+
+    Raises:
+        CaptureError / CaptureFormatError: missing file or wrong header.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise CaptureError(self.path, "recording not found")
+        self._fd = os.open(self.path, os.O_RDONLY)
+        self._map: mmap.mmap | None = None
+        self._view: memoryview | None = None
+        self._pos = _FILE_HEADER.size
+        self.index = 0
+        """Position of the record :meth:`next` reads next."""
+        self._remap()
+        if self._view is None:
+            raise CaptureFormatError(self.path, "recording header missing")
+        _check_file_header(self.path, bytes(self._view[:_FILE_HEADER.size]))
+
+    def _remap(self) -> None:
+        size = os.fstat(self._fd).st_size
+        if size < _FILE_HEADER.size or (self._view is not None and size <= len(self._view)):
+            return
+        # the old mapping is dropped, not closed: views handed out earlier keep it alive
+        self._map = mmap.mmap(self._fd, size, prot=mmap.PROT_READ)
+        self._view = memoryview(self._map)
+
+    def next(self) -> memoryview:
+        """The message of record :attr:`index` (then advance).
+
+        Raises:
+            CaptureError: the record is not (yet) complete in the file, or its CRC does not match.
+        """
+        view = self._view
+        end_header = self._pos + _RECORD_HEADER.size
+        if view is None or end_header > len(view):
+            self._remap()
+            view = self._view
+        if view is None or end_header > len(view):
+            raise CaptureError(self.path, f"record {self.index} is not in the file yet")
+        length, crc = _RECORD_HEADER.unpack_from(view, self._pos)
+        end = end_header + length
+        if length == 0 or length > MAX_RECORD_BYTES:
+            raise CaptureError(self.path, f"record {self.index} at byte {self._pos} states {length} bytes")
+        if end > len(view):
+            self._remap()
+            view = self._view
+            if view is None or end > len(view):
+                raise CaptureError(self.path, f"record {self.index} is not complete in the file yet")
+        message = view[end_header:end]
+        if zlib.crc32(message) != crc:
+            raise CaptureError(self.path, f"record {self.index} at byte {self._pos} is corrupt (CRC mismatch)")
+        self._pos = end
+        self.index += 1
+        return message
+
+    def close(self) -> None:
+        """Close the file (views handed out stay readable)."""
+        self._view = self._map = None
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+    def __enter__(self) -> RecordingReader:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -18,13 +18,15 @@ FastAPI ``RequestValidationError``           422     request body / query does n
 ``UnauthorizedError``                        401     no token / API key
 ``ForbiddenError``                           403     wrong token / API key
 ``SessionNotFoundError``                     404     unknown (or malformed) session id
-``NotReadyError``                            409     nothing to serve yet (no map, no pose)
+``NotReadyError`` / ``MapNotReadyError``     409     nothing to serve yet (no map, no pose)
 ``SessionConflictError``                     409     the session is finished, finishing or failed
 ``PayloadTooLargeError``                     413     body or image larger than the server's limits
 ``QueueFullError``                           429     per-session ingest queue full (``Retry-After``)
 ``TooManyClientSessionsError``               429     one address holds ``max_sessions_per_client``
                                                     open sessions created without an API key
 ``TooManySessionsError``                     503     ``max_sessions`` open (``Retry-After``)
+``WorkerUnavailableError``                   503     the session's worker is restarting or busy
+                                                    (``Retry-After``)
 anything else                                500     a bug: JSON ``{"detail", "field": null}`` too
 ===========================================  ======  ==========================================
 """
@@ -39,7 +41,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from voxfusion.core.errors import CaptureError, ValidationError, VoxFusionError
+from voxfusion.core.errors import CaptureError, MapNotReadyError, ValidationError, VoxFusionError
 from voxfusion.proto import FrameDecodeError, FrameValueError
 
 __all__ = [
@@ -54,6 +56,7 @@ __all__ = [
     "QueueFullError",
     "TooManySessionsError",
     "TooManyClientSessionsError",
+    "WorkerUnavailableError",
     "install_exception_handlers",
     "error_status",
 ]
@@ -140,6 +143,16 @@ class TooManySessionsError(ServerError):
         super().__init__(detail, None, {"Retry-After": str(max(1, int(retry_after_s)))})
 
 
+class WorkerUnavailableError(ServerError):
+    """The session's worker cannot answer now: it is restarting after a crash, or busy past the time limit
+    (503, ``Retry-After``)."""
+
+    status = 503
+
+    def __init__(self, detail: str, retry_after_s: int = 2) -> None:
+        super().__init__(detail, None, {"Retry-After": str(max(1, int(retry_after_s)))})
+
+
 class TooManyClientSessionsError(ServerError):
     """One client address holds ``max_sessions_per_client`` open sessions created without an API key (429).
 
@@ -157,6 +170,8 @@ def error_status(exc: BaseException) -> int:
     """The HTTP status the server answers ``exc`` with (see the module table); 500 for anything else."""
     if isinstance(exc, ServerError):
         return exc.status
+    if isinstance(exc, MapNotReadyError):
+        return 409
     if isinstance(exc, FrameValueError):
         return 422
     if isinstance(exc, FrameDecodeError):
@@ -201,6 +216,10 @@ def install_exception_handlers(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
         return JSONResponse(_body(str(exc.detail), None), status_code=exc.status_code, headers=exc.headers)
+
+    @app.exception_handler(MapNotReadyError)
+    async def _map_not_ready(_: Request, exc: MapNotReadyError) -> JSONResponse:
+        return JSONResponse(_body(str(exc), None), status_code=409)
 
     @app.exception_handler(VoxFusionError)
     async def _voxfusion_error(_: Request, exc: VoxFusionError) -> JSONResponse:

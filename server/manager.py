@@ -1,8 +1,9 @@
 """The session manager: the one API every transport (HTTP routes, the zenoh bridge) drives.
 
 It owns the metadata database, the open :class:`~.session.Session` objects, stored outputs of finished
-sessions, pose listeners, and a housekeeping thread (failure detection, periodic checkpoints, closing idle
-sessions). Every method is synchronous and thread-safe; HTTP routes call them from the thread pool.
+sessions, pose listeners, and a housekeeping thread that closes idle sessions (each session's worker
+detects its own failures and writes its own checkpoints: :mod:`.session`). Every method is synchronous and
+thread-safe; HTTP routes call them from the thread pool.
 
 Slots: at most ``max_sessions`` sessions are open (hold an engine) at once, and at most
 ``max_sessions_per_client`` of them may have been created without an API key by one client address from
@@ -136,13 +137,6 @@ class SessionManager:
 
     def _housekeeping(self) -> None:
         while not self._stop.wait(0.25):
-            with self._lock:
-                sessions = list(self._open.values())
-            for s in sessions:
-                try:
-                    s.poll()
-                except Exception:  # noqa: BLE001 - housekeeping must go on for the other sessions
-                    log.exception("housekeeping of session %s failed", s.id)
             try:
                 self.close_idle_sessions()
             except Exception:  # noqa: BLE001 - retried on the next round
@@ -174,22 +168,23 @@ class SessionManager:
                 if (self._open.get(sid) is not s or s.state not in _IDLE_STATES or self._pins[sid]
                         or now - self._last_frame.get(sid, now) < timeout):
                     continue  # a frame, a finish or a delete came in meanwhile
+                # the reason is written before the session leaves the open set: readers never see it closed
+                # without one
+                self.store.set_state(sid, s.state.value, last_error=(
+                    f"closed after {timeout:g} s without a frame (--session-idle-timeout-s); its recording "
+                    f"and map are kept: send a frame or POST /sessions/{sid}/resume to continue (the "
+                    "recording is replayed), or DELETE the session"), stats=st.model_dump(mode="json"))
                 del self._open[sid]
                 self._last_frame.pop(sid, None)
                 done = self._closing[sid] = threading.Event()
+                self.counters[("sessions_idle_closed_total", "")] += 1
             try:
                 s.close(checkpoint=True)
-                if s.state in _IDLE_STATES:  # not failed meanwhile (that wrote its own state and error)
-                    self.store.set_state(sid, s.state.value, last_error=(
-                        f"closed after {timeout:g} s without a frame (--session-idle-timeout-s); its recording "
-                        f"and map are kept: send a frame or POST /sessions/{sid}/resume to continue (the "
-                        "recording is replayed), or DELETE the session"), stats=s.status().model_dump(mode="json"))
             finally:
                 with self._lock:
                     self._closing.pop(sid, None)
                 done.set()
             closed.append(sid)
-            self.counters[("sessions_idle_closed_total", "")] += 1
             log.info("session %s closed: no frame for %g s (state %s kept; it resumes on its next frame)",
                      sid, timeout, s.state.value)
         return closed
@@ -369,8 +364,11 @@ class SessionManager:
 
     # ------------------------------------------------------------------ queries
     def _open_session(self, session_id: str) -> Session | None:
+        """The session's engine, while it has one (a finished session answers from its saved outputs, also
+        in the moment its worker is being shut down)."""
         with self._lock:
-            return self._open.get(session_id)
+            s = self._open.get(session_id)
+        return None if s is None or s.state == SessionState.finished else s
 
     def _stored_map(self, session_id: str) -> StoredMap:
         with self._lock:
@@ -401,7 +399,7 @@ class SessionManager:
     def latest_pose(self, session_id: str) -> PoseOut:
         self.get(session_id)
         s = self._open_session(session_id)
-        if s is not None and s.slam.records:
+        if s is not None and s.has_pose():
             return s.latest_pose()
         poses = self._stored_map(session_id).poses() if s is None else []
         if not poses:

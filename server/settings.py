@@ -67,6 +67,16 @@ class ServerSettings:
     """... or when this many keyframes were added since the last one (and at finish, always)."""
     finish_timeout_s: float = 600.0
     """Longest ``POST /finish`` waits for the queue to drain and the final mapping to run."""
+    session_workers: Literal["process", "thread"] = "process"
+    """Where each session's engine runs: ``process``, a worker process of its own (sessions share the cores
+    fairly, and a crashed worker takes down only its session, which restarts from its recording);
+    ``thread``: threads of the API process (one GIL for all sessions; the reference path)."""
+    worker_threads: int = 0
+    """Torch intra-op threads of each worker process; ``0``: the cores divided by ``2 * max_sessions`` (each
+    session runs a tracking and a mapping thread), at least 1."""
+    worker_restarts: int = 3
+    """How often one session's worker process may die (killed, crashed) and be restarted (replaying the
+    recording) before the session is marked ``failed``."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "data_dir", Path(self.data_dir))
@@ -84,6 +94,11 @@ class ServerSettings:
         for name in ("checkpoint_interval_s", "finish_timeout_s"):
             if not getattr(self, name) > 0:
                 raise ConfigError(name, f"must be > 0 seconds, got {getattr(self, name)}")
+        if self.session_workers not in ("process", "thread"):
+            raise ConfigError("session_workers", f"must be process or thread, got {self.session_workers!r}")
+        for name in ("worker_threads", "worker_restarts"):
+            if getattr(self, name) < 0:
+                raise ConfigError(name, f"must be >= 0, got {getattr(self, name)}")
         if self.max_sessions_per_client < 0:
             raise ConfigError("max_sessions_per_client",
                               f"must be >= 0 (0: no limit), got {self.max_sessions_per_client}")
@@ -99,6 +114,12 @@ class ServerSettings:
         if "api_key" not in kwargs:
             kwargs["api_key"] = os.environ.get(API_KEY_ENV) or None
         return cls(**kwargs)  # type: ignore[arg-type]
+
+    def torch_threads_per_worker(self) -> int:
+        """:attr:`worker_threads`, or its automatic value (see there)."""
+        if self.worker_threads:
+            return self.worker_threads
+        return max(1, (os.cpu_count() or 1) // (2 * self.max_sessions))
 
     @property
     def sessions_dir(self) -> Path:

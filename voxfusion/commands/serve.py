@@ -46,6 +46,13 @@ def serve_command(
     max_frame_mb: Annotated[float, typer.Option(help="Largest request body in MiB (more get 413).")] = 32.0,
     max_pending_frames: Annotated[int, typer.Option(help="Per-session ingest queue bound (more get 429).")] = 32,
     checkpoint_interval_s: Annotated[float, typer.Option(help="Periodic map checkpoint interval.")] = 30.0,
+    session_workers: Annotated[str, typer.Option(
+        help="Where each session's engine runs: process (a worker process per session: fair sharing of the "
+             "cores, a crash stays in its session) or thread (in the server process).")] = "process",
+    worker_threads: Annotated[int, typer.Option(
+        help="Torch threads per session worker (0: cores / (2 x max-sessions), at least 1).")] = 0,
+    worker_restarts: Annotated[int, typer.Option(
+        help="Restarts of a session's dead worker process (replaying its recording) before it is failed.")] = 3,
     log_level: Annotated[str, typer.Option(help="debug, info, warning or error.")] = "info",
 ) -> None:
     """Run the streaming server until interrupted (Ctrl-C stops it cleanly; a hard kill loses nothing
@@ -65,7 +72,8 @@ def serve_command(
         zenoh_listen=tuple(zenoh_listen) if zenoh_listen else None,
         max_sessions=max_sessions, max_sessions_per_client=max_sessions_per_client,
         session_idle_timeout_s=session_idle_timeout_s, max_frame_bytes=int(max_frame_mb * 1024 * 1024),
-        max_pending_frames=max_pending_frames, checkpoint_interval_s=checkpoint_interval_s)
+        max_pending_frames=max_pending_frames, checkpoint_interval_s=checkpoint_interval_s,
+        session_workers=session_workers, worker_threads=worker_threads, worker_restarts=worker_restarts)
     typer.echo(f"voxfusion server on http://{host}:{port} (docs: /docs), data in {data_dir}")
     from voxfusion.server.auth import RedactTokens
 
