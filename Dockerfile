@@ -54,11 +54,13 @@ RUN pip install --no-deps . \
  && rm -rf build ./*.egg-info
 
 # Session database, recordings and checkpoints live in /data. zenoh listens on every interface of the container
-# (port 7447, publish it with -p 7447:7447); for another zenoh setup mount a config at
-# /etc/voxfusion/zenoh.json5 and run `voxfusion serve ... --zenoh-config /etc/voxfusion/zenoh.json5`.
+# (port 7447, publish it with -p 7447:7447) with authentication and access control: credentials are generated
+# once in /data/zenoh, and clients use /data/zenoh/client.json5 (`docker cp` it out). For another zenoh setup
+# mount a config at /etc/voxfusion/zenoh.json5 and run `voxfusion serve ... --zenoh-config /etc/voxfusion/zenoh.json5`.
 VOLUME ["/data"]
 EXPOSE 8000 7447
 USER 10001:10001
 HEALTHCHECK --interval=30s --timeout=5s --start-period=60s \
     CMD ["python3", "-c", "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4)"]
-CMD ["voxfusion", "serve", "--host", "0.0.0.0", "--data-dir", "/data", "--zenoh-listen", "tcp/0.0.0.0:7447"]
+CMD ["voxfusion", "serve", "--host", "0.0.0.0", "--data-dir", "/data", "--zenoh-listen", "tcp/0.0.0.0:7447", \
+     "--zenoh-secrets", "/data/zenoh"]

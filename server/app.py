@@ -142,7 +142,8 @@ def start_zenoh_bridge(settings: ServerSettings, manager: SessionManager) -> Any
         return None
     try:
         bridge = ZenohBridge(manager, settings.zenoh_config,
-                             listen=list(settings.zenoh_listen) if settings.zenoh_listen else None)
+                             listen=list(settings.zenoh_listen) if settings.zenoh_listen else None,
+                             secrets=settings.zenoh_secrets, insecure=settings.zenoh_insecure)
         bridge.start()
     except Exception as e:  # noqa: BLE001 - zenoh is optional: HTTP keeps working
         level = logging.WARNING if settings.zenoh else logging.INFO

@@ -40,6 +40,12 @@ class ServerSettings:
     """A zenoh JSON5 config file for the bridge (default: a peer on loopback)."""
     zenoh_listen: tuple[str, ...] | None = None
     """Replaces the config's ``listen/endpoints`` (e.g. ``("tcp/0.0.0.0:7447",)`` for every interface)."""
+    zenoh_secrets: Path | None = None
+    """The LAN setup: a folder where the bridge keeps generated credentials and renders its config from
+    ``configs/zenoh/server-lan.json5`` (authentication + access control) and ``client.json5`` for clients.
+    Excludes ``zenoh_config``."""
+    zenoh_insecure: bool = False
+    """Let zenoh listen beyond loopback without authentication (refused otherwise)."""
     max_sessions: int = 8
     """Open sessions (created, running or finishing) held at once; more are refused with 503."""
     max_sessions_per_client: int = 2
@@ -80,6 +86,10 @@ class ServerSettings:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "data_dir", Path(self.data_dir))
+        if self.zenoh_secrets is not None:
+            object.__setattr__(self, "zenoh_secrets", Path(self.zenoh_secrets))
+            if self.zenoh_config is not None:
+                raise ConfigError("zenoh_secrets", "give zenoh_config or zenoh_secrets, not both")
         if self.zenoh_listen is not None:
             object.__setattr__(self, "zenoh_listen", tuple(self.zenoh_listen))
             bad = [e for e in self.zenoh_listen if "/" not in e]

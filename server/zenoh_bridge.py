@@ -59,7 +59,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from voxfusion.clients.zenoh_config import load_zenoh_config, require_zenoh
+from voxfusion.clients.zenoh_config import (
+    config_authenticates,
+    ensure_zenoh_secrets,
+    load_zenoh_config,
+    non_loopback_endpoints,
+    require_zenoh,
+)
 from voxfusion.clients.zenoh_keys import (
     CREATE_KEY,
     PREFIX,
@@ -147,13 +153,26 @@ class ZenohBridge:
         config_path: zenoh JSON5 config; ``None``: ``configs/zenoh/server.json5``.
         options: tuning (queue sizes, threads).
         listen: replaces the config's ``listen/endpoints`` (e.g. ``["tcp/127.0.0.1:7448"]``).
+        secrets: a folder for the LAN setup (:func:`~voxfusion.clients.zenoh_config.ensure_zenoh_secrets`):
+            credentials generated there once, the server config rendered from ``configs/zenoh/server-lan.json5``
+            (authentication + access control), and ``client.json5`` for clients. Excludes ``config_path``.
+        insecure: allow listening beyond loopback without authentication (a network you trust).
     """
 
     def __init__(self, manager: SessionManager, config_path: str | Path | None = None, *,
-                 options: BridgeOptions | None = None, listen: list[str] | None = None) -> None:
+                 options: BridgeOptions | None = None, listen: list[str] | None = None,
+                 secrets: str | Path | None = None, insecure: bool = False) -> None:
         self.manager = manager
         self.options = options or BridgeOptions()
+        if secrets is not None and config_path is not None:
+            raise ConfigError("zenoh_secrets", "give a zenoh config file or a secrets folder, not both")
         self.config_path = config_path
+        self.secrets = None if secrets is None else ensure_zenoh_secrets(secrets)
+        if self.secrets is not None:
+            self.config_path = self.secrets.server_config
+            log.info("zenoh: authenticated LAN setup from %s; clients use %s", self.secrets.folder,
+                     self.secrets.client_config)
+        self._insecure = insecure
         self._listen = listen
         self._z: Any = None
         self.server_id: str | None = None
@@ -175,6 +194,13 @@ class ZenohBridge:
         """
         z = require_zenoh()
         cfg = load_zenoh_config(self.config_path, "server", listen=self._listen)
+        exposed = non_loopback_endpoints(cfg)
+        if exposed and not config_authenticates(cfg) and not self._insecure:
+            raise ConfigError("zenoh_listen", f"zenoh would listen on {', '.join(exposed)} without authentication: "
+                                              "any peer on that network could read session tokens, poses and ids. "
+                                              "Use --zenoh-secrets DIR (credentials + access control; clients use "
+                                              "DIR/client.json5), a config of your own with transport/auth, or "
+                                              "--zenoh-insecure on a network you trust")
         try:
             self._z = z.open(cfg)  # type: ignore[attr-defined]
         except Exception as e:  # zenoh.ZError: e.g. address already in use
@@ -186,7 +212,7 @@ class ZenohBridge:
             self._entities = [
                 self._z.declare_subscriber(frames, cb(self._on_frame_put)),
                 self._z.declare_queryable(frames, cb(self._on_frame_query)),
-                self._z.declare_queryable(CREATE_KEY, cb(self._on_create), complete=True),
+                self._z.declare_queryable(CREATE_KEY, cb(self._on_create)),
                 self._z.liveliness().declare_token(server_liveliness_key(self.server_id)),
             ]
             for verb in ("render", "mesh", "voxels", "status", "trajectory", "poses/latest", "finish"):
@@ -458,6 +484,9 @@ class ZenohBridge:
 
     def _on_create(self, query: Any) -> None:
         def create() -> None:
+            if str(query.key_expr) != CREATE_KEY:  # a wildcard query that happens to match: create nothing
+                raise ServerError(f"creating a session needs a query on {CREATE_KEY} exactly, got "
+                                  f"{query.key_expr}", "key")
             self.manager.check_api_key(_attachment_text(query.attachment))
             raw = query.payload.to_bytes() if query.payload is not None else b""
             try:

@@ -10,10 +10,11 @@ import pytest
 
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import CaptureError, CaptureFormatError
-from voxfusion.proto import encode_frame
+from voxfusion.proto import decode_frame, encode_frame
 from voxfusion.proto.recording import (
     RECORDING_FILENAME,
     RecordingCapture,
+    RecordingReader,
     RecordingWriter,
     find_recording,
     iter_messages,
@@ -128,3 +129,40 @@ def test_recording_capture_replays_the_frames(tmp_path, frames, messages):
         assert got.timestamp_s == pytest.approx(want.timestamp_s)
         assert got.T_world_cam is None  # recordings carry no reference pose
     assert cap[-1].index == 3
+
+
+def test_reader_follows_a_growing_recording_without_copies(tmp_path, messages):
+    path = tmp_path / "rec.vxr"
+    writer = RecordingWriter(path)
+    reader = RecordingReader(path)
+    with pytest.raises(CaptureError, match="not in the file yet"):
+        reader.next()  # nothing appended: a clear error, the position unchanged
+    views = []
+    for i, m in enumerate(messages):
+        writer.append(m)
+        view = reader.next()  # the file grew since the reader mapped it
+        assert isinstance(view, memoryview) and view.readonly and reader.index == i + 1
+        views.append(view)
+    reader.close()
+    writer.close()
+    assert [bytes(v) for v in views] == messages  # views stay readable after close and remaps
+    assert decode_frame(views[1]).seq == 11  # frames decode straight from the mapping
+
+
+def test_reader_refuses_a_corrupt_record(tmp_path, messages):
+    path = tmp_path / "rec.vxr"
+    with RecordingWriter(path) as writer:
+        for m in messages[:2]:
+            writer.append(m)
+    data = bytearray(path.read_bytes())
+    data[-5] ^= 0xFF  # a byte of the second message
+    path.write_bytes(bytes(data))
+    with RecordingReader(path) as reader:
+        assert bytes(reader.next()) == messages[0]
+        with pytest.raises(CaptureError, match=r"record 1 .* \(CRC mismatch\)"):
+            reader.next()
+    with pytest.raises(CaptureError, match="not found"):
+        RecordingReader(tmp_path / "missing.vxr")
+    (tmp_path / "not.vxr").write_bytes(b"NOTAVXR0" + bytes(8))
+    with pytest.raises(CaptureFormatError, match="not a voxfusion recording"):
+        RecordingReader(tmp_path / "not.vxr")

@@ -36,6 +36,11 @@ def serve_command(
     zenoh_listen: Annotated[list[str] | None, typer.Option(
         "--zenoh-listen", help="zenoh endpoint to listen on, replacing the config's (repeatable; e.g. "
                                "tcp/0.0.0.0:7447 for every interface). Implies --zenoh.")] = None,
+    zenoh_secrets: Annotated[Path | None, typer.Option(
+        "--zenoh-secrets", help="LAN setup: keep zenoh credentials in this folder (generated once) and serve with "
+                                "authentication and access control; clients use DIR/client.json5.")] = None,
+    zenoh_insecure: Annotated[bool, typer.Option(
+        "--zenoh-insecure", help="Allow zenoh to listen beyond loopback without authentication.")] = False,
     max_sessions: Annotated[int, typer.Option(help="Open sessions held at once (more get 503).")] = 8,
     max_sessions_per_client: Annotated[int, typer.Option(
         help="Open sessions one client address beyond loopback may hold when the server has no API key (more "
@@ -63,12 +68,20 @@ def serve_command(
 
     from voxfusion.server import ServerSettings, create_app
 
-    if zenoh_listen and zenoh is False:
-        raise typer.BadParameter("--zenoh-listen needs the zenoh bridge; drop --no-zenoh", param_hint="--zenoh-listen")
+    if (zenoh_listen or zenoh_secrets) and zenoh is False:
+        raise typer.BadParameter("--zenoh-listen / --zenoh-secrets need the zenoh bridge; drop --no-zenoh",
+                                 param_hint="--zenoh-listen")
+    exposed = [e for e in zenoh_listen or [] if not _on_loopback(e)]
+    if exposed and not (zenoh_secrets or zenoh_config or zenoh_insecure):
+        raise typer.BadParameter(f"zenoh on {', '.join(exposed)} without authentication would let any peer on that "
+                                 "network read session tokens: add --zenoh-secrets DIR (clients then use "
+                                 "DIR/client.json5), or --zenoh-insecure on a network you trust",
+                                 param_hint="--zenoh-listen")
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings = ServerSettings.from_env(
         data_dir=data_dir, device=device, default_preset=config,
-        zenoh=True if zenoh_listen else zenoh, zenoh_config=zenoh_config,
+        zenoh=True if zenoh_listen or zenoh_secrets else zenoh, zenoh_config=zenoh_config,
+        zenoh_secrets=zenoh_secrets, zenoh_insecure=zenoh_insecure,
         zenoh_listen=tuple(zenoh_listen) if zenoh_listen else None,
         max_sessions=max_sessions, max_sessions_per_client=max_sessions_per_client,
         session_idle_timeout_s=session_idle_timeout_s, max_frame_bytes=int(max_frame_mb * 1024 * 1024),
@@ -80,6 +93,11 @@ def serve_command(
     for name in ("uvicorn.access", "uvicorn.error"):  # the viewer link and the pose WebSocket carry ?token=
         logging.getLogger(name).addFilter(RedactTokens())
     uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level.lower(), timeout_graceful_shutdown=30)
+
+
+def _on_loopback(endpoint: str) -> bool:
+    host = endpoint.split("/", 1)[-1].rsplit(":", 1)[0]
+    return host.startswith("127.") or host in ("[::1]", "localhost")
 
 
 def register(app: typer.Typer) -> None:
