@@ -30,14 +30,14 @@ ENV PATH=/opt/venv/bin:$PATH VIRTUAL_ENV=/opt/venv
 WORKDIR /opt/voxfusion
 
 # Dependencies before the source (this layer is rebuilt only when pyproject.toml changes): torch from the CUDA
-# index, then the dependencies and the `baseline` and `server` extras as pyproject.toml lists them, with torch
+# index, then the dependencies and the `baseline`, `server` and `cluster` extras as pyproject.toml lists them, with torch
 # held at that build.
 COPY pyproject.toml ./
 RUN pip install "pip==${PIP_VERSION}" \
  && pip install "torch==${TORCH_VERSION}" --index-url "${TORCH_INDEX}" \
  && echo "torch==${TORCH_VERSION}" > /tmp/constraints.txt \
  && python -c 'import tomllib; p = tomllib.load(open("pyproject.toml", "rb"))["project"]; \
-extras = p["optional-dependencies"]; print("\n".join(p["dependencies"] + extras["baseline"] + extras["server"]))' \
+extras = p["optional-dependencies"]; print("\n".join(p["dependencies"] + extras["baseline"] + extras["server"] + extras["cluster"]))' \
         > /tmp/requirements.txt \
  && pip install --requirement /tmp/requirements.txt --constraint /tmp/constraints.txt \
  && rm /tmp/requirements.txt /tmp/constraints.txt

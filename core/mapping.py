@@ -100,12 +100,18 @@ class Keyframe:
 
     Its pose is ``T_base @ exp(delta)`` (right perturbation, :mod:`.lie`): ``T_base`` ``[4, 4]`` float64
     camera-to-world as tracked, ``delta`` a trainable 6-vector refined by joint mapping.
+
+    Threads: ``delta`` is updated in place by the mapping thread's optimiser; other threads read
+    :meth:`published_pose`, a copy the mapping thread swaps in whole with each published map
+    (:meth:`publish_pose`), never the parameter itself.
     """
 
     data: FrameData
     T_base: torch.Tensor
     delta: torch.nn.Parameter
     fixed: bool = False
+    published: np.ndarray | None = None
+    """``[4, 4]`` float64 pose as of the last published map (``None`` until then)."""
 
     @classmethod
     def create(cls, data: FrameData, T_world_cam: torch.Tensor, fixed: bool = False) -> Keyframe:
@@ -118,8 +124,17 @@ class Keyframe:
 
     @property
     def T_world_cam(self) -> torch.Tensor:
-        """Current pose, detached."""
+        """Current pose, detached (the mapping thread's view; other threads use :meth:`published_pose`)."""
         return self.pose().detach()
+
+    def publish_pose(self) -> None:
+        """Copy the current pose for other threads (called by the thread that optimises ``delta``)."""
+        self.published = self.T_world_cam.cpu().numpy()
+
+    def published_pose(self) -> np.ndarray:
+        """``[4, 4]`` float64 pose as of the last published map (the tracked pose before the first)."""
+        published = self.published
+        return published if published is not None else self.T_base.cpu().numpy()
 
 
 @dataclass(frozen=True)
@@ -169,7 +184,7 @@ def _window_colors(colors: list[torch.Tensor | None], depths: list[torch.Tensor]
 
 def keyframe_color_views(keyframes: list[Keyframe] | tuple[Keyframe, ...]) -> list[ColorView]:
     """The keyframes' colour images at their current poses, for mesh colours (none for depth-only maps)."""
-    return [ColorView(kf.data.color, kf.data.depth_m, kf.data.K, kf.T_world_cam.clone())
+    return [ColorView(kf.data.color, kf.data.depth_m, kf.data.K, torch.from_numpy(kf.published_pose().copy()))
             for kf in list(keyframes) if kf.data.color is not None]
 
 

@@ -82,9 +82,9 @@ class FrameRecord:
     def current_pose(self) -> np.ndarray:
         """Pose with the newest keyframe refinements applied."""
         if self.keyframe is not None:
-            return nearest_rigid(self.keyframe.T_world_cam.cpu().numpy())
+            return nearest_rigid(self.keyframe.published_pose())
         if self.ref_keyframe is not None and self.T_ref_frame is not None:
-            return nearest_rigid(self.ref_keyframe.T_world_cam.cpu().numpy() @ self.T_ref_frame)
+            return nearest_rigid(self.ref_keyframe.published_pose() @ self.T_ref_frame)
         return self.T_tracked
 
 
@@ -225,6 +225,8 @@ class SlamSystem:
         stream = self._streams.get("mapping")
         voxels = m.voxels.snapshot()
         decoder = copy.deepcopy(m.decoder).requires_grad_(False)
+        for kf in m.keyframes:  # other threads read keyframe poses from these copies only
+            kf.publish_pose()
         if stream is not None:
             stream.synchronize()
         snap = MapSnapshot(voxels, decoder, m.version, tuple(m.keyframes))
@@ -272,7 +274,7 @@ class SlamSystem:
         if kfs and not rec.lost:
             ref = kfs[-1]
             rec.ref_keyframe = ref
-            rec.T_ref_frame = invert_pose(ref.T_world_cam.cpu().numpy()) @ rec.T_tracked
+            rec.T_ref_frame = invert_pose(ref.published_pose()) @ rec.T_tracked
         rec.tracked_at = time.perf_counter()
         self._latencies.append((rec.tracked_at - received_at) * 1e3)
         with self._lock:

@@ -19,7 +19,15 @@ from .codecs import (
     ConfidenceEncoding,
     DepthEncoding,
 )
-from .container import ERROR_FIELDS, MAGIC, MEDIA_TYPE, WIRE_VERSION, FrameDecodeError, FrameValueError
+from .container import (
+    ERROR_FIELDS,
+    MAGIC,
+    MEDIA_TYPE,
+    WIRE_VERSION,
+    FrameDecodeError,
+    FrameEncodingError,
+    FrameValueError,
+)
 from .frame_codec import (
     DecodedFrame,
     DecodeLimits,
@@ -38,6 +46,7 @@ __all__ = [
     "ERROR_FIELDS",
     "FrameDecodeError",
     "FrameValueError",
+    "FrameEncodingError",
     "DEPTH_ENCODINGS",
     "COLOR_ENCODINGS",
     "CONFIDENCE_ENCODINGS",

@@ -27,6 +27,8 @@ class SessionStatusOut(SessionStatus):
     """Tracked frames whose tracking failed (their pose is the motion model's guess; they are not fused)."""
     worker_pid: int | None = None
     """Process id of the session's engine worker on the server (``None``: none, or engines on threads)."""
+    worker_node: str | None = None
+    """Where the engine runs: the Ray node id with ``--ray-address``, else this server's host name."""
     worker_restarts: int = Field(0, ge=0)
     """How often the session's worker process died (killed, crashed) and was restarted, replaying the
     recording, since the session was opened."""

@@ -41,7 +41,7 @@ from PIL import Image
 
 from voxfusion.core.errors import ShapeError, ValidationError
 
-from .container import FrameDecodeError
+from .container import FrameDecodeError, FrameEncodingError
 
 __all__ = [
     "DepthEncoding",
@@ -202,7 +202,8 @@ def decode_depth(payload: bytes, encoding: str, width: int, height: int) -> np.n
     elif encoding == "raw_f32_m":
         d = np.frombuffer(_raw(payload, 4 * n, "depth"), dtype="<f4").astype(np.float32)
     else:
-        raise FrameDecodeError("depth", f"unknown encoding {encoding!r}; expected one of {', '.join(DEPTH_ENCODINGS)}")
+        raise FrameEncodingError("depth",
+                                 f"unknown encoding {encoding!r}; expected one of {', '.join(DEPTH_ENCODINGS)}")
     with np.errstate(invalid="ignore"):
         d[~(d > 0) | ~np.isfinite(d)] = 0.0
     return d.reshape(height, width)
@@ -239,7 +240,8 @@ def decode_color(payload: bytes, encoding: str, width: int, height: int) -> np.n
         raw = _raw(payload, width * height * 3, "color")
         return np.frombuffer(raw, dtype=np.uint8).reshape(height, width, 3).copy()
     if encoding not in ("jpeg", "png"):
-        raise FrameDecodeError("color", f"unknown encoding {encoding!r}; expected one of {', '.join(COLOR_ENCODINGS)}")
+        raise FrameEncodingError("color",
+                                 f"unknown encoding {encoding!r}; expected one of {', '.join(COLOR_ENCODINGS)}")
     kind: Literal["PNG", "JPEG"] = "JPEG" if encoding == "jpeg" else "PNG"
     bgr = _imdecode(payload, kind, width, height, cv2.IMREAD_COLOR, "color")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
@@ -270,7 +272,7 @@ def encode_confidence(confidence: np.ndarray, encoding: ConfidenceEncoding = "zs
 def decode_confidence(payload: bytes, encoding: str, levels: str, width: int, height: int) -> np.ndarray:
     """Decode a confidence payload (``width`` x ``height``, the depth's size) to ``[H, W]`` uint8 in {0, 1, 2}."""
     if levels not in CONFIDENCE_LEVELS:
-        raise FrameDecodeError("confidence", f"unknown levels {levels!r}; expected one of "
+        raise FrameEncodingError("confidence", f"unknown levels {levels!r}; expected one of "
                                              f"{', '.join(CONFIDENCE_LEVELS)}")
     n = width * height
     if encoding == "raw_u8":
@@ -283,7 +285,7 @@ def decode_confidence(payload: bytes, encoding: str, levels: str, width: int, he
             raise FrameDecodeError("confidence", f"png8 must be a single-channel 8-bit PNG, got {c.dtype} "
                                                  f"with shape {c.shape}")
     else:
-        raise FrameDecodeError("confidence", f"unknown encoding {encoding!r}; expected one of "
+        raise FrameEncodingError("confidence", f"unknown encoding {encoding!r}; expected one of "
                                              f"{', '.join(CONFIDENCE_ENCODINGS)}")
     if levels == "0-255":
         return _CONF_255_LUT[c]

@@ -83,6 +83,11 @@ class FrameDecodeError(ValidationError):
     """
 
 
+class FrameEncodingError(FrameDecodeError):
+    """A payload names an encoding (or confidence levels) this build does not know; the server answers HTTP 415
+    with the field (``depth``, ``color``, ``confidence``)."""
+
+
 class FrameValueError(FrameDecodeError):
     """A well-formed message whose values no camera produces (a field of view outside 2-170 degrees, a
     device pose more than 100 km from its origin: :mod:`voxfusion.core.frame_checks`); the server answers

@@ -54,7 +54,15 @@ from .codecs import (
     encode_confidence,
     encode_depth,
 )
-from .container import MAX_HEADER_BYTES, FrameDecodeError, FrameValueError, Payloads, pack_message, unpack_message
+from .container import (
+    MAX_HEADER_BYTES,
+    FrameDecodeError,
+    FrameEncodingError,
+    FrameValueError,
+    Payloads,
+    pack_message,
+    unpack_message,
+)
 
 __all__ = [
     "PoseConvention",
@@ -311,10 +319,13 @@ def _int(obj: dict[str, Any], key: str, field: str, lo: int, hi: int) -> int:
     return v
 
 
-def _choice(obj: dict[str, Any], key: str, field: str, choices: tuple[str, ...]) -> str:
+def _choice(obj: dict[str, Any], key: str, field: str, choices: tuple[str, ...],
+            unknown: type[FrameDecodeError] = FrameDecodeError) -> str:
+    """``obj[key]`` if it is one of ``choices``; else ``unknown`` (:class:`FrameEncodingError` for encodings
+    and levels: HTTP 415) naming ``field``."""
     v = _key(obj, key, field)
     if v not in choices:
-        raise FrameDecodeError(field, f"unknown {key} {v!r}; expected one of {', '.join(choices)}")
+        raise unknown(field, f"unknown {key} {v!r}; expected one of {', '.join(choices)}")
     return v
 
 
@@ -348,7 +359,7 @@ def _parse_header(raw: dict[str, Any], limits: DecodeLimits) -> FrameHeader:
     timestamp_s = _num(raw, "timestamp_s", "header")
 
     dep = _obj(raw, "depth", "depth", required=True)
-    depth_encoding = _choice(dep, "encoding", "depth", DEPTH_ENCODINGS)
+    depth_encoding = _choice(dep, "encoding", "depth", DEPTH_ENCODINGS, FrameEncodingError)
     units = _key(dep, "units", "depth")
     if units != DEPTH_UNITS[depth_encoding]:
         raise FrameDecodeError("depth", f"units {units!r} do not match encoding {depth_encoding!r} "
@@ -365,7 +376,7 @@ def _parse_header(raw: dict[str, Any], limits: DecodeLimits) -> FrameHeader:
     col = _obj(raw, "color", "color", required=False)
     color_encoding, cw, ch = None, 0, 0
     if col is not None:
-        color_encoding = _choice(col, "encoding", "color", COLOR_ENCODINGS)
+        color_encoding = _choice(col, "encoding", "color", COLOR_ENCODINGS, FrameEncodingError)
         cw = _int(col, "width", "color", 1, limits.max_width)
         ch = _int(col, "height", "color", 1, limits.max_height)
         if not _aspect_close(cw, ch, w, h):
@@ -374,8 +385,8 @@ def _parse_header(raw: dict[str, Any], limits: DecodeLimits) -> FrameHeader:
     con = _obj(raw, "confidence", "confidence", required=False)
     conf_encoding = conf_levels = None
     if con is not None:
-        conf_encoding = _choice(con, "encoding", "confidence", CONFIDENCE_ENCODINGS)
-        conf_levels = _choice(con, "levels", "confidence", CONFIDENCE_LEVELS)
+        conf_encoding = _choice(con, "encoding", "confidence", CONFIDENCE_ENCODINGS, FrameEncodingError)
+        conf_levels = _choice(con, "levels", "confidence", CONFIDENCE_LEVELS, FrameEncodingError)
 
     pose = _obj(raw, "device_pose", "device_pose", required=False)
     T = convention = None

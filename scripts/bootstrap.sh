@@ -9,13 +9,13 @@
 # Environment overrides:
 #   PYTHON=python3.11        interpreter used to create .venv (>= 3.11)
 #   VOXFUSION_TORCH="torch==2.13.0"   the torch requirement to install (e.g. a CUDA build pin)
-#   VOXFUSION_EXTRAS="baseline,test,server,iphone"   extras of the voxfusion distribution to install
+#   VOXFUSION_EXTRAS="baseline,test,server,iphone,cluster"   extras of the voxfusion distribution to install
 #   VOXFUSION_SKIP_APT=1     do not install system packages (you manage them yourself)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3}
-EXTRAS=${VOXFUSION_EXTRAS:-baseline,test,server,iphone}
+EXTRAS=${VOXFUSION_EXTRAS:-baseline,test,server,iphone,cluster}
 SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libglx0 libgomp1 libx11-6 curl)
 # The headless browser of the viewer's tests (tests/server/browser.py, scripts/viewer_screenshot.py), Debian's
 # names. Optional: when it cannot be installed, setup goes on with a warning and those tests are skipped.

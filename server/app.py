@@ -24,6 +24,7 @@ from .api import ROUTERS
 from .errors import PayloadTooLargeError, install_exception_handlers
 from .manager import SessionManager
 from .metrics import HttpStats, route_template
+from .openapi import document_errors
 from .settings import ServerSettings
 
 __all__ = ["create_app", "BodySizeLimit", "start_zenoh_bridge"]
@@ -184,6 +185,7 @@ def create_app(settings: ServerSettings | None = None) -> FastAPI:
     install_exception_handlers(app)
     for router in ROUTERS:
         app.include_router(router)
+    document_errors(app)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_frame_bytes)
     app.add_middleware(_HttpMetrics, stats=app.state.http_stats, router=app.router)
     return app

@@ -8,7 +8,7 @@ maps every one of them to a status and an :class:`~voxfusion.proto.schemas.Error
 ===========================================  ======  ==========================================
 error                                        status  when
 ===========================================  ======  ==========================================
-``FrameDecodeError`` (unknown encoding)      415     a frame names an encoding we do not know
+``FrameEncodingError``                       415     a frame names an encoding we do not know
 ``FrameValueError``                          422     well-formed frame no camera produces (intrinsics,
                                                      device pose out of reach: ``core.frame_checks``)
 ``FrameDecodeError`` (anything else)         400     malformed frame message or upload
@@ -34,7 +34,6 @@ anything else                                500     a bug: JSON ``{"detail", "f
 from __future__ import annotations
 
 import logging
-import re
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -42,7 +41,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from voxfusion.core.errors import CaptureError, MapNotReadyError, ValidationError, VoxFusionError
-from voxfusion.proto import FrameDecodeError, FrameValueError
+from voxfusion.proto import FrameDecodeError, FrameEncodingError, FrameValueError
 
 __all__ = [
     "ServerError",
@@ -163,9 +162,6 @@ class TooManyClientSessionsError(ServerError):
     status = 429
 
 
-_UNKNOWN_ENCODING = re.compile(r"^unknown (encoding|levels)\b")
-
-
 def error_status(exc: BaseException) -> int:
     """The HTTP status the server answers ``exc`` with (see the module table); 500 for anything else."""
     if isinstance(exc, ServerError):
@@ -174,9 +170,9 @@ def error_status(exc: BaseException) -> int:
         return 409
     if isinstance(exc, FrameValueError):
         return 422
+    if isinstance(exc, FrameEncodingError):
+        return 415
     if isinstance(exc, FrameDecodeError):
-        if exc.field in ("depth", "color", "confidence") and _UNKNOWN_ENCODING.match(exc.problem):
-            return 415
         return 400
     if isinstance(exc, ValidationError):
         return 422

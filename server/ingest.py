@@ -60,7 +60,7 @@ import zstandard
 from PIL import Image, UnidentifiedImageError
 
 from voxfusion.core.errors import ValidationError
-from voxfusion.proto import DEPTH_ENCODINGS, FrameDecodeError, FrameHeader, read_header
+from voxfusion.proto import DEPTH_ENCODINGS, FrameDecodeError, FrameEncodingError, FrameHeader, read_header
 from voxfusion.proto.codecs import DEPTH_UNITS
 from voxfusion.proto.container import Payloads, pack_message
 from voxfusion.proto.frame_codec import ASPECT_TOLERANCE, DecodeLimits
@@ -204,7 +204,7 @@ def _depth_payload(meta: dict[str, Any], depth: UploadPart) -> tuple[bytes, dict
         raise FrameDecodeError("depth", "metadata 'depth_encoding' is required for a non-PNG depth part "
                                         f"(one of {', '.join(MULTIPART_DEPTH_ENCODINGS)})")
     if enc not in MULTIPART_DEPTH_ENCODINGS:
-        raise FrameDecodeError("depth", f"unknown encoding {enc!r}; expected one of "
+        raise FrameEncodingError("depth", f"unknown encoding {enc!r}; expected one of "
                                         f"{', '.join(MULTIPART_DEPTH_ENCODINGS)}")
     if enc == "png16_mm":
         w, h = _image_size(depth.data, "depth", "PNG")
@@ -220,7 +220,7 @@ def _depth_payload(meta: dict[str, Any], depth: UploadPart) -> tuple[bytes, dict
         payload = zstandard.ZstdCompressor(level=1).compress(payload)
         enc = "zstd_f16_m"
     if enc not in DEPTH_ENCODINGS:  # pragma: no cover - every multipart encoding maps onto a wire one
-        raise FrameDecodeError("depth", f"unknown encoding {enc!r}")
+        raise FrameEncodingError("depth", f"unknown encoding {enc!r}")
     return payload, {"encoding": enc, "units": DEPTH_UNITS[enc], "width": w, "height": h}
 
 
@@ -256,7 +256,7 @@ def message_from_multipart(metadata: bytes | str, depth: UploadPart, color: Uplo
         if enc is None:
             raise FrameDecodeError("color", "colour part is neither JPEG nor PNG; set metadata 'color_encoding'")
         if enc not in ("jpeg", "png"):
-            raise FrameDecodeError("color", f"unknown encoding {enc!r}; expected one of jpeg, png")
+            raise FrameEncodingError("color", f"unknown encoding {enc!r}; expected one of jpeg, png")
         cw, ch = _image_size(color.data, "color", enc.upper())
         declared = _declared_size(meta, "color")
         if declared is not None and declared != (cw, ch):

@@ -69,6 +69,28 @@ _IDLE_STATES = (SessionState.created, SessionState.running)
 _SERVER_KEYS = ("device", "mode")
 
 
+class EventCounts:
+    """Counters of events (``(name, label value)`` -> count) that many threads add to: each addition is one
+    locked read-modify-write (``Counter[key] += 1`` from several threads can lose increments)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counts: Counter[tuple[str, str]] = Counter()
+
+    def add(self, name: str, label: str = "", n: int = 1) -> None:
+        with self._lock:
+            self._counts[(name, label)] += n
+
+    def items(self) -> list[tuple[tuple[str, str], int]]:
+        """A consistent copy of every ``((name, label), count)``."""
+        with self._lock:
+            return list(self._counts.items())
+
+    def __getitem__(self, key: tuple[str, str]) -> int:
+        with self._lock:
+            return self._counts[key]
+
+
 class SessionManager:
     """Sessions of one server (see the module docstring). Call :meth:`open` before use, :meth:`close` after."""
 
@@ -77,7 +99,7 @@ class SessionManager:
         self.device = resolve_device(settings.device)
         self.default_preset = settings.default_preset or (CPU_PRESET if self.device.type == "cpu" else "default")
         self.zenoh_running = False
-        self.counters: Counter[tuple[str, str]] = Counter()
+        self.counters = EventCounts()
         """Event counters for ``/metrics``: ``(name, label value)`` -> count."""
         self._lock = threading.RLock()
         self._open: dict[str, Session] = {}
@@ -92,6 +114,8 @@ class SessionManager:
         """Open session id -> calls using its :class:`Session` right now (ingest, finish): never closed idle."""
         self._closing: dict[str, threading.Event] = {}
         """Session id -> set once its idle close is done (resume and delete wait for it)."""
+        self._resuming: dict[str, threading.Event] = {}
+        """Session id -> set once its resume (outside the lock) is done; its slot is counted meanwhile."""
         self._owners: dict[str, str] = {}
         """Session id -> the client address that created it without an API key from beyond loopback."""
 
@@ -104,6 +128,10 @@ class SessionManager:
             check_preset_name(self.default_preset)
         except ConfigError as e:
             raise ConfigError("default_preset", e.problem) from e
+        if self.settings.session_workers == "ray":
+            from .ray_worker import connect
+
+            connect(self.settings.ray_address or "auto")
         detached = [r.id for r in self.store.all() if r.state in _OPEN_STATES]
         if detached:
             log.info("%d session(s) were open when the server stopped; they resume on request or on their next "
@@ -126,6 +154,10 @@ class SessionManager:
             self._open.clear()
         for s in sessions:
             s.close(checkpoint=True)
+        if self.settings.session_workers == "ray":
+            from .ray_worker import disconnect
+
+            disconnect()
         if self._store is not None:
             self._store.close()
 
@@ -177,7 +209,7 @@ class SessionManager:
                 del self._open[sid]
                 self._last_frame.pop(sid, None)
                 done = self._closing[sid] = threading.Event()
-                self.counters[("sessions_idle_closed_total", "")] += 1
+                self.counters.add("sessions_idle_closed_total", "")
             try:
                 s.close(checkpoint=True)
             finally:
@@ -239,7 +271,8 @@ class SessionManager:
         return apply_overrides(cfg, {"device": self.settings.device, "mode": "realtime"})
 
     def _open_count(self) -> int:
-        return sum(1 for s in self._open.values() if s.is_open)
+        """Open sessions, counting those being resumed (their slot is reserved)."""
+        return sum(1 for s in self._open.values() if s.is_open) + len(self._resuming)
 
     def _check_capacity(self) -> None:
         if self._open_count() >= self.settings.max_sessions:
@@ -252,7 +285,8 @@ class SessionManager:
         limit = self.settings.max_sessions_per_client
         if client is None or limit == 0:
             return
-        held = sum(1 for sid, s in self._open.items() if s.is_open and self._owners.get(sid) == client)
+        held = (sum(1 for sid, s in self._open.items() if s.is_open and self._owners.get(sid) == client)
+                + sum(1 for sid in self._resuming if self._owners.get(sid) == client))
         if held >= limit:
             idle = self.settings.session_idle_timeout_s
             freed = f"; sessions without frames are closed after {idle:g} s" if idle > 0 else ""
@@ -289,7 +323,7 @@ class SessionManager:
             self._last_frame[sid] = time.monotonic()
             if client is not None:
                 self._owners[sid] = client
-        self.counters[("sessions_created_total", "")] += 1
+        self.counters.add("sessions_created_total", "")
         log.info("session %s created (preset %s, mode %s)", sid, preset, mode.value)
         return sid, token
 
@@ -352,10 +386,10 @@ class SessionManager:
             finally:
                 self._unpin(session_id, got_frame=accepted)
         except Exception as e:
-            self.counters[("frames_rejected_total", str(error_status(e)))] += 1
+            self.counters.add("frames_rejected_total", str(error_status(e)))
             raise
-        self.counters[("frames_duplicate_total" if duplicate else "frames_accepted_total", "")] += 1
-        self.counters[("frame_bytes_total", "")] += len(data)
+        self.counters.add("frames_duplicate_total" if duplicate else "frames_accepted_total", "")
+        self.counters.add("frame_bytes_total", "", len(data))
         return seq, duplicate
 
     def submit_frame_bytes(self, session_id: str, data: bytes) -> int:
@@ -488,30 +522,48 @@ class SessionManager:
         """Replay the recording of a session left open by a restart (or failed) through a new engine.
 
         A running session is left as it is. Raises :class:`SessionConflictError` for a finished session and
-        :class:`TooManySessionsError` when no slot is free.
+        :class:`TooManySessionsError` when no slot is free. The slot is reserved under the manager's lock; the
+        slow part (closing an old engine, reading the recording, starting the worker) runs without it, so
+        other sessions never wait for a resume (a second resume of the same session waits for the first).
         """
-        row = self.get(session_id)
+        self.get(session_id)
         self._wait_closed(session_id)
-        with self._lock:
-            s = self._open.get(session_id)
-            if s is not None and s.is_open:
-                return s.status()
-            row = self.get(session_id)
-            if row.state == SessionState.finished.value:
-                raise SessionConflictError(f"session {session_id} is finished; nothing to resume", "session_id")
-            self._check_client_capacity(self._owners.get(session_id))
-            self._check_capacity()
+        while True:
+            with self._lock:
+                s = self._open.get(session_id)
+                pending = self._resuming.get(session_id)
+                if pending is None and not (s is not None and s.is_open):
+                    row = self.get(session_id)
+                    if row.state == SessionState.finished.value:
+                        raise SessionConflictError(f"session {session_id} is finished; nothing to resume",
+                                                   "session_id")
+                    self._check_client_capacity(self._owners.get(session_id))
+                    self._check_capacity()
+                    if s is not None:
+                        self._open.pop(session_id)
+                    done = self._resuming[session_id] = threading.Event()
+                    break
+            if pending is None:  # open and running: nothing to do
+                return s.status()  # type: ignore[union-attr]
+            pending.wait(timeout=120)  # another caller is resuming it
+        try:
             if s is not None:
-                self._open.pop(session_id)
                 s.close(checkpoint=False)
             cfg = self._server_config(config_from_dict(VoxFusionConfig, row.config))
-            s = self._open[session_id] = self._new_session(row, cfg, replay=True)
-            self._last_frame[session_id] = time.monotonic()
-            self._stored.pop(session_id, None)
+            s = self._new_session(row, cfg, replay=True)
+            with self._lock:
+                self._open[session_id] = s
+                self._last_frame[session_id] = time.monotonic()
+                self._stored.pop(session_id, None)
             self.store.set_state(session_id, s.state.value, last_error="")
-        self.counters[("sessions_resumed_total", "")] += 1
-        log.info("session %s resumed: replaying %d recorded frames", session_id, s.status().replay_pending)
-        return s.status()
+        finally:
+            with self._lock:
+                self._resuming.pop(session_id, None)
+            done.set()
+        self.counters.add("sessions_resumed_total", "")
+        status = s.status()
+        log.info("session %s resumed: replaying %d recorded frames", session_id, status.replay_pending)
+        return status
 
     def finish(self, session_id: str, timeout_s: float | None = None) -> SessionStatusOut:
         """Process what is queued, run the final mapping, write the final checkpoint, mesh and trajectory.
@@ -547,6 +599,10 @@ class SessionManager:
         self.get(session_id)
         self._wait_closed(session_id)
         with self._lock:
+            resuming = self._resuming.get(session_id)
+        if resuming is not None:
+            resuming.wait(timeout=120)
+        with self._lock:
             s = self._open.pop(session_id, None)
             self._stored.pop(session_id, None)
             self._listeners.pop(session_id, None)
@@ -556,7 +612,7 @@ class SessionManager:
             s.close(checkpoint=False)
         self.store.delete(session_id)
         shutil.rmtree(self.settings.sessions_dir / check_session_id(session_id), ignore_errors=True)
-        self.counters[("sessions_deleted_total", "")] += 1
+        self.counters.add("sessions_deleted_total", "")
 
     # ------------------------------------------------------------------ health
     def health(self) -> HealthOut:

@@ -161,6 +161,8 @@ _PER_SESSION = (
     ("voxfusion_session_fps", "gauge", "Frames tracked per second.", "fps"),
     ("voxfusion_session_latency_ms", "gauge", "Mean frame arrival to pose latency, ms.", "latency_ms"),
     ("voxfusion_session_frames_queued", "gauge", "Frames accepted, not yet handed to tracking.", "frames_queued"),
+    ("voxfusion_session_worker_restarts_total", "counter", "Restarts of the session's dead worker process.",
+     "worker_restarts"),
 )
 _COUNTER_HELP = {"frames_accepted_total": "Frames recorded and acknowledged (202).",
                  "frames_duplicate_total": "Frames re-sent with a seq already recorded.",

@@ -146,7 +146,8 @@ class Session:
             self._replay, self._handed = replay, 0
             self._worker = start_worker(self.settings.session_workers, spec,
                                         on_event=lambda event: self._on_event(generation, event),
-                                        on_exit=lambda code: self._on_worker_exit(generation, code))
+                                        on_exit=lambda code: self._on_worker_exit(generation, code),
+                                        ray=self.settings.ray_options())
             self._worker.available(len(self.recorder))
             self._cond.notify_all()
 
@@ -315,12 +316,13 @@ class Session:
             queued = self._admitted + self._queued()
             replay_pending = max(0, self._replay - self._handed) if self.state in _OPEN_STATES else 0
             pid = None if worker is None else worker.pid
+            node = None if worker is None else worker.node_id
         return SessionStatusOut(
             id=self.id, name=self.name, mode=self.mode, state=self.state, created_at=self.created_at,
             frames_received=len(self.recorder), frames_tracked=st.frames_tracked, frames_mapped=st.frames_mapped,
             frames_dropped=st.frames_dropped, frames_lost=st.frames_lost, keyframes=st.keyframes, voxels=st.voxels,
             fps=st.fps, latency_ms=st.latency_ms, last_error=self.last_error, map_version=st.map_version,
-            replay_pending=replay_pending, frames_queued=queued, worker_pid=pid,
+            replay_pending=replay_pending, frames_queued=queued, worker_pid=pid, worker_node=node,
             worker_restarts=self.worker_restarts)
 
     def poses(self) -> list[PoseOut]:

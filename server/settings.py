@@ -73,10 +73,18 @@ class ServerSettings:
     """... or when this many keyframes were added since the last one (and at finish, always)."""
     finish_timeout_s: float = 600.0
     """Longest ``POST /finish`` waits for the queue to drain and the final mapping to run."""
-    session_workers: Literal["process", "thread"] = "process"
+    session_workers: Literal["process", "thread", "ray"] = "process"
     """Where each session's engine runs: ``process``, a worker process of its own (sessions share the cores
     fairly, and a crashed worker takes down only its session, which restarts from its recording);
-    ``thread``: threads of the API process (one GIL for all sessions; the reference path)."""
+    ``thread``: threads of the API process (one GIL for all sessions; the reference path); ``ray``: actors on
+    the Ray cluster at ``ray_address`` (set automatically when ``ray_address`` is given)."""
+    ray_address: str | None = None
+    """A Ray cluster (``host:6379``, ``ray://host:10001``, ``auto``) whose nodes run the session workers; the
+    data folder must be a path every node shares."""
+    cpus_per_session: float = 1.0
+    """Logical CPUs each session's Ray actor asks for."""
+    gpus_per_session: float = 0.0
+    """GPUs each session's Ray actor asks for (a fraction shares a GPU, e.g. 0.25: four sessions per GPU)."""
     worker_threads: int = 0
     """Torch intra-op threads of each worker process; ``0``: the cores divided by ``2 * max_sessions`` (each
     session runs a tracking and a mapping thread), at least 1."""
@@ -104,8 +112,14 @@ class ServerSettings:
         for name in ("checkpoint_interval_s", "finish_timeout_s"):
             if not getattr(self, name) > 0:
                 raise ConfigError(name, f"must be > 0 seconds, got {getattr(self, name)}")
-        if self.session_workers not in ("process", "thread"):
-            raise ConfigError("session_workers", f"must be process or thread, got {self.session_workers!r}")
+        if self.ray_address and self.session_workers == "process":
+            object.__setattr__(self, "session_workers", "ray")
+        if self.session_workers not in ("process", "thread", "ray"):
+            raise ConfigError("session_workers", f"must be process, thread or ray, got {self.session_workers!r}")
+        if self.session_workers == "ray" and not self.ray_address:
+            raise ConfigError("ray_address", "session workers on Ray need the cluster's address (--ray-address)")
+        if self.cpus_per_session <= 0 or self.gpus_per_session < 0:
+            raise ConfigError("cpus_per_session", "need cpus_per_session > 0 and gpus_per_session >= 0")
         for name in ("worker_threads", "worker_restarts"):
             if getattr(self, name) < 0:
                 raise ConfigError(name, f"must be >= 0, got {getattr(self, name)}")
@@ -124,6 +138,14 @@ class ServerSettings:
         if "api_key" not in kwargs:
             kwargs["api_key"] = os.environ.get(API_KEY_ENV) or None
         return cls(**kwargs)  # type: ignore[arg-type]
+
+    def ray_options(self) -> object | None:
+        """The :class:`~voxfusion.server.ray_worker.RayOptions` of ``ray`` session workers (else ``None``)."""
+        if self.session_workers != "ray":
+            return None
+        from .ray_worker import RayOptions
+
+        return RayOptions(self.ray_address or "auto", self.cpus_per_session, self.gpus_per_session)
 
     def torch_threads_per_worker(self) -> int:
         """:attr:`worker_threads`, or its automatic value (see there)."""

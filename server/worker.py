@@ -28,6 +28,7 @@ import multiprocessing.connection
 import os
 import pickle
 import signal
+import socket
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -42,7 +43,7 @@ __all__ = ["SessionWorker", "ProcessWorker", "ThreadWorker", "WorkerLostError", 
 
 log = logging.getLogger("voxfusion.server")
 
-WORKER_KINDS = ("process", "thread")
+WORKER_KINDS = ("process", "thread", "ray")
 """``voxfusion serve --session-workers`` choices."""
 
 OnEvent = Callable[[tuple], None]
@@ -57,6 +58,8 @@ class SessionWorker(Protocol):
     """What a session needs of its worker (see the module docstring)."""
 
     pid: int | None
+    node_id: str | None
+    """Where it runs: a Ray node id, or this machine's host name."""
 
     def call(self, verb: str, *args: Any, timeout_s: float | None = None) -> Any: ...
 
@@ -160,6 +163,7 @@ class ProcessWorker:
         self._proc.start()
         child.close()
         self.pid: int | None = self._proc.pid
+        self.node_id: str | None = socket.gethostname()
         self._send_lock = threading.Lock()
         self._lock = threading.Lock()
         self._calls: dict[int, Future] = {}
@@ -273,6 +277,7 @@ class ThreadWorker:
 
     def __init__(self, spec: HostSpec, on_event: OnEvent, on_exit: OnExit) -> None:
         self.spec = spec
+        self.node_id = socket.gethostname()
         self.host = EngineHost(spec, emit=on_event)
 
     def call(self, verb: str, *args: Any, timeout_s: float | None = None) -> Any:
@@ -290,10 +295,16 @@ class ThreadWorker:
         raise VoxFusionError("a thread worker cannot be killed; use --session-workers process")
 
 
-def start_worker(kind: str, spec: HostSpec, on_event: OnEvent, on_exit: OnExit) -> SessionWorker:
-    """A new worker of ``kind`` (:data:`WORKER_KINDS`) running ``spec``."""
+def start_worker(kind: str, spec: HostSpec, on_event: OnEvent, on_exit: OnExit,
+                 ray: Any = None) -> SessionWorker:  # noqa: ANN401 - RayOptions, imported only when used
+    """A new worker of ``kind`` (:data:`WORKER_KINDS`) running ``spec`` (``ray``: the
+    :class:`~.ray_worker.RayOptions` of kind ``ray``)."""
     if kind == "process":
         return ProcessWorker(spec, on_event, on_exit)
     if kind == "thread":
         return ThreadWorker(spec, on_event, on_exit)
+    if kind == "ray":
+        from .ray_worker import RayWorker
+
+        return RayWorker(spec, on_event, on_exit, ray)
     raise VoxFusionError(f"unknown session worker kind {kind!r}; one of {WORKER_KINDS}")

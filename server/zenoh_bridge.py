@@ -262,7 +262,7 @@ class ZenohBridge:
 
     # --------------------------------------------------------------------------- bookkeeping
     def _count(self, name: str, label: str = "") -> None:
-        self.manager.counters[(name, label)] += 1
+        self.manager.counters.add(name, label)
 
     def _attach(self, session_id: str, live: bool) -> None:
         """Publish the session's poses; hold its liveliness token while it is live (created / running)."""

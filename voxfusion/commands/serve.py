@@ -56,6 +56,12 @@ def serve_command(
              "cores, a crash stays in its session) or thread (in the server process).")] = "process",
     worker_threads: Annotated[int, typer.Option(
         help="Torch threads per session worker (0: cores / (2 x max-sessions), at least 1).")] = 0,
+    ray_address: Annotated[str | None, typer.Option(
+        "--ray-address", help="Run session workers as actors on this Ray cluster (host:6379, ray://host:10001, "
+                              "auto); the data folder must be a path every node shares.")] = None,
+    cpus_per_session: Annotated[float, typer.Option(help="Logical CPUs per session actor (Ray).")] = 1.0,
+    gpus_per_session: Annotated[float, typer.Option(
+        help="GPUs per session actor (Ray; a fraction shares a GPU, e.g. 0.25).")] = 0.0,
     worker_restarts: Annotated[int, typer.Option(
         help="Restarts of a session's dead worker process (replaying its recording) before it is failed.")] = 3,
     log_level: Annotated[str, typer.Option(help="debug, info, warning or error.")] = "info",
@@ -71,12 +77,6 @@ def serve_command(
     if (zenoh_listen or zenoh_secrets) and zenoh is False:
         raise typer.BadParameter("--zenoh-listen / --zenoh-secrets need the zenoh bridge; drop --no-zenoh",
                                  param_hint="--zenoh-listen")
-    exposed = [e for e in zenoh_listen or [] if not _on_loopback(e)]
-    if exposed and not (zenoh_secrets or zenoh_config or zenoh_insecure):
-        raise typer.BadParameter(f"zenoh on {', '.join(exposed)} without authentication would let any peer on that "
-                                 "network read session tokens: add --zenoh-secrets DIR (clients then use "
-                                 "DIR/client.json5), or --zenoh-insecure on a network you trust",
-                                 param_hint="--zenoh-listen")
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings = ServerSettings.from_env(
         data_dir=data_dir, device=device, default_preset=config,
@@ -86,7 +86,15 @@ def serve_command(
         max_sessions=max_sessions, max_sessions_per_client=max_sessions_per_client,
         session_idle_timeout_s=session_idle_timeout_s, max_frame_bytes=int(max_frame_mb * 1024 * 1024),
         max_pending_frames=max_pending_frames, checkpoint_interval_s=checkpoint_interval_s,
-        session_workers=session_workers, worker_threads=worker_threads, worker_restarts=worker_restarts)
+        session_workers="ray" if ray_address and session_workers == "process" else session_workers,
+        worker_threads=worker_threads, worker_restarts=worker_restarts, ray_address=ray_address,
+        cpus_per_session=cpus_per_session, gpus_per_session=gpus_per_session)
+    exposed = [e for e in zenoh_listen or [] if not _on_loopback(e)]
+    if exposed and not (zenoh_secrets or zenoh_config or zenoh_insecure):
+        raise typer.BadParameter(f"zenoh on {', '.join(exposed)} without authentication would let any peer on that "
+                                 "network read session tokens: add --zenoh-secrets DIR (clients then use "
+                                 "DIR/client.json5), or --zenoh-insecure on a network you trust",
+                                 param_hint="--zenoh-listen")
     typer.echo(f"voxfusion server on http://{host}:{port} (docs: /docs), data in {data_dir}")
     from voxfusion.server.auth import RedactTokens
 
