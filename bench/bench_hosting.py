@@ -14,6 +14,9 @@ one sender thread per session, and samples every session's status once a second.
   (``--session-workers process``, the default) and, as the baseline in the same run, on threads of the
   server process (``thread``, how every session ran before).
 * **scaling**: 1 and 2 sessions for ``--scaling-seconds`` (60) in both modes: total tracked frames/s.
+* **ray**: 4 realtime sessions on a local 2-node Ray cluster (``ray.cluster_utils.Cluster``), the worker node
+  removed a third of the way in: where the sessions ran, whether the moved ones restarted on the other node,
+  acknowledged frames lost.
 * **kill**: 3 sessions at 5 fps; after ``--kill-at-s`` (20 s) one session's worker is killed with SIGKILL.
   Reports the other sessions' tracked rate in the windows before and after the kill, whether the killed
   session resumed by itself (a new worker, ``worker_restarts == 1``, tracking again), and acknowledged
@@ -203,6 +206,47 @@ def kill_trial(root: Path, messages: list[bytes], seconds: float, kill_at_s: flo
     return result
 
 
+def ray_trial(root: Path, messages: list[bytes], seconds: float, kill_at_s: float) -> dict:
+    """4 realtime sessions on a local 2-node Ray cluster; the worker node is removed at ``kill_at_s``."""
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 2})
+    worker = cluster.add_node(num_cpus=2)
+    cluster.wait_for_nodes()
+    removed: dict = {}
+    placed: dict = {}
+
+    def during(elapsed: float, sessions: list[StreamedSession]) -> None:
+        if not placed:
+            placed.update({s.id: s.status()["worker_node"] for s in sessions})
+        if not removed and elapsed >= kill_at_s:
+            cluster.remove_node(worker)
+            removed["t"] = time.perf_counter()
+
+    try:
+        data_dir = root / f"data-ray-{time.monotonic_ns()}"
+        with ServeProcess(data_dir, "--ray-address", cluster.address, "--cpus-per-session", "0.5",
+                          "--session-idle-timeout-s", "0", "--max-sessions-per-client", "0") as server:
+            server.data_dir = data_dir
+            sessions = run_sessions(server, messages, 4, seconds, during)
+            statuses = {s.id: s.status() for s in sessions}
+            moved = [sid for sid, node in placed.items() if node == worker.node_id]
+            result = {"seconds": seconds, "remove_node_at_s": kill_at_s, "nodes": 2, "sessions": 4,
+                      "sessions_per_node_before": {n: list(placed.values()).count(n) for n in set(placed.values())},
+                      "sessions_moved": len(moved),
+                      "moved_sessions_restarted": all(statuses[sid]["worker_restarts"] == 1 for sid in moved),
+                      "moved_sessions_now_on": sorted({statuses[sid]["worker_node"] for sid in moved}),
+                      "states": sorted({st["state"] for st in statuses.values()}),
+                      "frames_tracked": [statuses[s.id]["frames_tracked"] for s in sessions],
+                      "acknowledged_frames": sum(len(s.acked) for s in sessions),
+                      "acknowledged_frames_lost": sum(s.lost_acknowledged() for s in sessions)}
+            for s in sessions:
+                s.delete()
+    finally:
+        cluster.shutdown()
+    return result
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=180.0, help="fairness run length")
@@ -211,13 +255,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--kill-seconds", type=float, default=60.0)
     ap.add_argument("--kill-at-s", type=float, default=25.0)
     ap.add_argument("--modes", nargs="+", default=["process", "thread"], choices=["process", "thread"])
+    ap.add_argument("--ray-seconds", type=float, default=40.0, help="Ray run length (0: skip it)")
     ap.add_argument("--out", type=Path, default=REPO_ROOT / "bench" / "results" / "hosting.json")
     args = ap.parse_args(argv)
     n_frames = int(max(args.seconds, args.scaling_seconds, args.kill_seconds) * RATE_FPS) + 10
     print(f"[hosting] rendering {n_frames} iPhone-shaped frames ...", flush=True)
     messages = make_messages(n_frames, seed=0)
     result: dict = {"machine": machine_info(), "date": datetime.now(UTC).isoformat(timespec="seconds"),
-                    "rate_fps": RATE_FPS, "fairness": [], "scaling": [], "kill": []}
+                    "rate_fps": RATE_FPS, "fairness": [], "scaling": [], "kill": [], "ray": None}
     with tempfile.TemporaryDirectory(prefix="vf-hosting-") as tmp:
         root = Path(tmp)
         for mode in args.modes:
@@ -231,6 +276,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[hosting] kill trial {k + 1}/{args.kill_trials}", flush=True)
             result["kill"].append(kill_trial(root, messages, args.kill_seconds, args.kill_at_s))
             print(f"[hosting]   {result['kill'][-1]}", flush=True)
+        if args.ray_seconds > 0:
+            print(f"[hosting] Ray: 4 sessions on a local 2-node cluster, one node removed, {args.ray_seconds:g} s",
+                  flush=True)
+            result["ray"] = ray_trial(root, messages, args.ray_seconds, args.ray_seconds / 3)
+            print(f"[hosting]   {result['ray']}", flush=True)
     write_json(args.out, result)
     rows = [{"workers": f["workers"], "sessions": 3, "frames tracked": " / ".join(map(str, f["frames_tracked"])),
              "spread": f"{100 * f['spread']:.0f} %", "total tracked fps": f["total_tracked_fps"]}

@@ -11,6 +11,7 @@ import os
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -21,6 +22,9 @@ from .mapping import Mapper
 from .slam_config import VoxFusionConfig
 from .trajectory import Trajectory
 from .voxels import VoxelMap
+
+if TYPE_CHECKING:
+    from .slam import MapSnapshot
 
 __all__ = [
     "CHECKPOINT_VERSION", "LoadedCheckpoint", "save_checkpoint", "load_checkpoint", "atomic_write_bytes",
@@ -58,9 +62,10 @@ class LoadedCheckpoint:
     """``[K, 4, 4]`` camera-to-world poses of the keyframes."""
 
 
-def save_checkpoint(path: str | Path, mapper: Mapper, config: VoxFusionConfig,
+def save_checkpoint(path: str | Path, mapper: Mapper | MapSnapshot, config: VoxFusionConfig,
                     trajectory: Trajectory | None = None) -> Path:
-    """Save ``mapper``'s map, decoder and keyframe poses with ``config`` (and ``trajectory``) to ``path``."""
+    """Save a map (a :class:`Mapper` at rest, or a :class:`~.slam.MapSnapshot`, which any thread may save) with
+    its decoder and keyframe poses, ``config`` (and ``trajectory``) to ``path``."""
     import io
 
     state = {
@@ -72,7 +77,9 @@ def save_checkpoint(path: str | Path, mapper: Mapper, config: VoxFusionConfig,
         "keyframes": {
             "index": [kf.data.index for kf in mapper.keyframes],
             "timestamp_s": [kf.data.timestamp_s for kf in mapper.keyframes],
-            "T_world_cam": np.stack([kf.T_world_cam.detach().cpu().numpy() for kf in mapper.keyframes])
+            # the poses other threads may read (published with each map); the live ones before any publish
+            "T_world_cam": np.stack([kf.published if kf.published is not None else kf.T_world_cam.cpu().numpy()
+                                     for kf in mapper.keyframes])
             if mapper.keyframes else np.zeros((0, 4, 4)),
         },
         "trajectory": None if trajectory is None else {

@@ -34,7 +34,6 @@ from .field import FieldConfig, SDFDecoder, query
 from .framedata import FrameData, sample_pixels
 from .lie import perturb_right
 from .losses import LossConfig, LossTerms, compute_losses
-from .mesh import extract_map_mesh
 from .mesh.colors import ColorView
 from .optim import adam
 from .render import RenderConfig, camera_rays, render_rays
@@ -361,8 +360,7 @@ class Mapper:
 
     def extract_mesh(self, mesh_res: int = 20, support: bool = True,  # noqa: ANN201 - trimesh.Trimesh
                      colors: str = "images"):
-        """Triangle mesh of the zero level set inside active voxels where observations support it, with
-        vertex colours from the keyframe images (``colors="images"``) or the colour head (``"field"``)
-        (:func:`.mesh.extract_map_mesh`)."""
-        views = keyframe_color_views(self.keyframes) if colors == "images" else None
-        return extract_map_mesh(self.voxels, self.decoder, mesh_res, support, color_views=views)
+        """Triangle mesh of this mapper's map as it is now (:meth:`.slam.MapSnapshot.mesh`, the one mesh path)."""
+        from .slam import MapSnapshot
+
+        return MapSnapshot.of(self).mesh(mesh_res, support, colors)

@@ -29,6 +29,7 @@ from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -43,10 +44,11 @@ from .geometry import invert_pose, nearest_rigid
 from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views
 from .mesh import extract_map_mesh
 from .mesh.frame import WorldAxes, camera_up_forward
-from .render import RenderedImage, render_depth_image
+from .render import RenderConfig, RenderedImage, render_depth_image
 from .slam_config import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
 from .trajectory import Trajectory
+from .voxel_export import voxels_npz_bytes, voxels_ply_bytes
 from .voxels import VoxelMap
 
 __all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem"]
@@ -106,14 +108,52 @@ class SlamStats:
 
 @dataclass(frozen=True)
 class MapSnapshot:
-    """A frozen map for readers on other threads: voxels (shared index, copied embeddings) + decoder."""
+    """A frozen map for readers on other threads: voxels (shared index, copied embeddings) + decoder, and the
+    map's verbs (render, mesh, export). The one place a map is rendered or meshed: live sessions, finished
+    ones (:meth:`load`) and offline runs all go through it."""
 
     voxels: VoxelMap
     decoder: SDFDecoder
     version: int
     keyframes: tuple[Keyframe, ...] = ()
-    """The keyframes when the snapshot was taken (their images colour meshes; their poses are read when a
-    mesh is made, so building a snapshot costs no pose evaluation)."""
+    """The keyframes when the snapshot was taken (their images colour meshes; their published poses are read
+    when a mesh is made, so building a snapshot costs no pose evaluation)."""
+
+    @classmethod
+    def of(cls, mapper: Mapper) -> MapSnapshot:
+        """The mapper's map as it is now, without copying (only for a mapper no thread is optimising)."""
+        return cls(mapper.voxels, mapper.decoder, int(mapper.version), tuple(mapper.keyframes))
+
+    @classmethod
+    def load(cls, path: str | Path, device: torch.device | str = "cpu") -> tuple[MapSnapshot, VoxFusionConfig]:
+        """The map of a checkpoint (:func:`.checkpoint.save_checkpoint`) and its configuration; checkpoints
+        keep no keyframe images, so meshes of a loaded map take their colours from the colour head."""
+        from .checkpoint import load_checkpoint
+
+        ckpt = load_checkpoint(path, device)
+        return cls.of(ckpt.mapper), ckpt.config
+
+    def render(self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int,
+               config: RenderConfig) -> RenderedImage:
+        """Depth (and colour) at a camera: ``K`` ``[3, 3]``, ``T_world_cam`` ``[4, 4]`` camera-to-world (OpenCV
+        axes, metres), an image of ``width`` x ``height`` pixels (:func:`.render.render_depth_image`)."""
+        return render_depth_image(self.voxels, self.decoder, K, T_world_cam, width, height, config)
+
+    def mesh(self, mesh_res: int, support: bool = True, colors: str = "images") -> trimesh.Trimesh:
+        """Triangle mesh of the zero level set at ``mesh_res`` samples per voxel edge where observations
+        support it (``support``), coloured from the keyframe images (``colors="images"``, when the snapshot has
+        keyframes with colour) or by the colour head (:func:`.mesh.extract_map_mesh`)."""
+        views = keyframe_color_views(self.keyframes) if colors == "images" else None
+        return extract_map_mesh(self.voxels, self.decoder, mesh_res, support, color_views=views)
+
+    def export(self, fmt: str) -> bytes:
+        """The voxels as ``npz`` (codes, embeddings and decoder: :func:`.voxel_export.voxels_npz_bytes`) or as
+        a ``ply`` point cloud of voxel centres."""
+        if fmt == "npz":
+            return voxels_npz_bytes(self.voxels, self.decoder)
+        if fmt == "ply":
+            return voxels_ply_bytes(self.voxels)
+        raise ValidationError("format", f"unknown voxel format {fmt!r}; use npz or ply")
 
 
 class SlamSystem:
@@ -489,7 +529,7 @@ class SlamSystem:
         snap = self.snapshot
         if snap is None:
             raise MapNotReadyError("the map is empty: no frame has been mapped yet")
-        return render_depth_image(snap.voxels, snap.decoder, K, T_world_cam, width, height, self.config.render)
+        return snap.render(K, T_world_cam, width, height, self.config.render)
 
     def mesh(self, mesh_res: int | None = None, snapshot: MapSnapshot | None = None) -> trimesh.Trimesh:
         """Mesh of ``snapshot`` (default: the newest) at ``mesh_res`` samples per voxel edge (default
@@ -505,8 +545,7 @@ class SlamSystem:
         if cached is not None:
             return cached
 
-        views = keyframe_color_views(snap.keyframes) if self.config.mesh_colors == "images" else None
-        mesh = extract_map_mesh(snap.voxels, snap.decoder, res, self.config.mesh_support, color_views=views)
+        mesh = snap.mesh(res, self.config.mesh_support, self.config.mesh_colors)
         self._mesh_cache = {k: m for k, m in self._mesh_cache.items() if k[0] == snap.version}
         self._mesh_cache[key] = mesh
         return mesh

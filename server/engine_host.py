@@ -24,6 +24,7 @@ Events sent with ``emit`` (from the host's threads; the API process dispatches t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import threading
@@ -31,7 +32,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -42,11 +42,10 @@ from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.errors import EngineFailedError, MapNotReadyError
 from voxfusion.core.mesh import mesh_bytes
 from voxfusion.core.mesh.frame import sidecar_path
-from voxfusion.core.render import RenderedImage, render_depth_image
+from voxfusion.core.render import RenderedImage
 from voxfusion.core.slam import FrameRecord, MapSnapshot, SlamSystem
 from voxfusion.core.slam_config import VoxFusionConfig
 from voxfusion.core.trajectory import write_tum_trajectory
-from voxfusion.core.voxel_export import voxels_npz_bytes, voxels_ply_bytes
 from voxfusion.proto import FrameDecodeError, decode_frame
 from voxfusion.proto.recording import RECORDING_FILENAME, RecordingReader
 from voxfusion.proto.schemas import PoseOut, RenderRequest
@@ -266,9 +265,8 @@ class EngineHost:
         mapper, snap = self.slam.mapper, self.slam.snapshot
         if mapper is None or snap is None:
             return
-        keyframes = list(mapper.keyframes)
-        source: Any = (SimpleNamespace(voxels=snap.voxels, decoder=snap.decoder, keyframes=keyframes,
-                                       version=snap.version) if from_snapshot else mapper)
+        keyframes = tuple(mapper.keyframes)
+        source: Any = dataclasses.replace(snap, keyframes=keyframes) if from_snapshot else mapper
         poses = self.poses()
         save_checkpoint(self.folder / CHECKPOINT_FILE, source, self.config, self.slam.trajectory())
         atomic_write_bytes(self.folder / POSES_FILE, json.dumps([p.model_dump(mode="json") for p in poses]).encode())
@@ -306,9 +304,7 @@ class EngineHost:
     def render(self, req: RenderRequest) -> tuple[RenderedImage, int]:
         """Depth (+ colour) at a client's camera from the newest map, and that map's version."""
         snap = self._snapshot()
-        image = render_depth_image(snap.voxels, snap.decoder, req.K(), req.T_world_cam_cv(), req.width, req.height,
-                                   self.config.render)
-        return image, snap.version
+        return snap.render(req.K(), req.T_world_cam_cv(), req.width, req.height, self.config.render), snap.version
 
     def mesh_bytes(self, fmt: str, detail: MeshDetail = "full") -> tuple[bytes, int]:
         """The mesh of the newest map as ``fmt`` at ``detail`` (``full``: ``config.mesh_res``; ``preview``:
@@ -329,8 +325,7 @@ class EngineHost:
 
     def voxels_bytes(self, fmt: str) -> tuple[bytes, int]:
         snap = self._snapshot()
-        data = voxels_npz_bytes(snap.voxels, snap.decoder) if fmt == "npz" else voxels_ply_bytes(snap.voxels)
-        return data, snap.version
+        return snap.export(fmt), snap.version
 
     # ------------------------------------------------------------------ finish, close (verbs)
     def finish(self, timeout_s: float) -> EngineStats:

@@ -26,8 +26,8 @@ import trimesh
 from voxfusion.core.checkpoint import LoadedCheckpoint, load_checkpoint
 from voxfusion.core.mesh import mesh_bytes
 from voxfusion.core.mesh.frame import WorldAxes, read_mesh_frame
-from voxfusion.core.render import RenderedImage, render_depth_image
-from voxfusion.core.voxel_export import voxels_npz_bytes, voxels_ply_bytes
+from voxfusion.core.render import RenderedImage
+from voxfusion.core.slam import MapSnapshot
 from voxfusion.proto.schemas import PoseOut, RenderRequest
 
 from .errors import NotReadyError
@@ -107,7 +107,7 @@ class StoredMap:
             else:
                 res = ckpt.config.preview_mesh_res() if detail == "preview" else ckpt.config.mesh_res
                 mesh = (trimesh.load(mesh_file, file_type="ply", process=False) if fresh
-                        else ckpt.mapper.extract_mesh(res, ckpt.config.mesh_support, ckpt.config.mesh_colors))
+                        else MapSnapshot.of(ckpt.mapper).mesh(res, ckpt.config.mesh_support, ckpt.config.mesh_colors))
                 data = mesh_bytes(mesh, fmt, self.world_axes())
             self._mesh_cache = {k: v for k, v in self._mesh_cache.items() if k[0] == version}
             self._mesh_cache[(version, fmt, detail)] = data
@@ -124,14 +124,10 @@ class StoredMap:
         return self.world_axes().sidecar(f"mesh.{fmt}", fmt)
 
     def voxels_bytes(self, fmt: str) -> tuple[bytes, int]:
-        ckpt = self._checkpoint()
-        m = ckpt.mapper
-        data = voxels_npz_bytes(m.voxels, m.decoder) if fmt == "npz" else voxels_ply_bytes(m.voxels)
-        return data, int(m.version)
+        snap = MapSnapshot.of(self._checkpoint().mapper)
+        return snap.export(fmt), snap.version
 
     def render(self, req: RenderRequest) -> tuple[RenderedImage, int]:
         ckpt = self._checkpoint()
-        m = ckpt.mapper
-        image = render_depth_image(m.voxels, m.decoder, req.K(), req.T_world_cam_cv(), req.width, req.height,
-                                   ckpt.config.render)
-        return image, int(m.version)
+        snap = MapSnapshot.of(ckpt.mapper)
+        return snap.render(req.K(), req.T_world_cam_cv(), req.width, req.height, ckpt.config.render), snap.version
