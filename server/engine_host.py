@@ -34,8 +34,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from voxfusion.core.checkpoint import atomic_write_bytes, save_checkpoint
 from voxfusion.core.config import config_from_dict
 from voxfusion.core.datasets.frame import RGBDFrame
@@ -43,7 +41,7 @@ from voxfusion.core.errors import EngineFailedError, MapNotReadyError
 from voxfusion.core.mesh import mesh_bytes
 from voxfusion.core.mesh.frame import sidecar_path
 from voxfusion.core.render import RenderedImage
-from voxfusion.core.slam import FrameRecord, MapSnapshot, SlamSystem
+from voxfusion.core.slam import FrameRecord, MapSnapshot, SlamStats, SlamSystem
 from voxfusion.core.slam_config import VoxFusionConfig
 from voxfusion.core.trajectory import write_tum_trajectory
 from voxfusion.proto import FrameDecodeError, decode_frame
@@ -91,18 +89,9 @@ class HostSpec:
 
 
 @dataclass(frozen=True)
-class EngineStats:
-    """The engine's counters as the API process reports them (``frames_*`` as in :class:`SlamStats`)."""
+class EngineStats(SlamStats):
+    """The engine's counters (:class:`SlamStats`, ``latency_ms`` NaN before the first pose) and the feeder's."""
 
-    frames_tracked: int
-    frames_mapped: int
-    frames_dropped: int
-    frames_lost: int
-    keyframes: int
-    voxels: int
-    fps: float
-    latency_ms: float | None
-    map_version: int
     handed: int
     """Records handed to the engine so far."""
     replay_pending: int
@@ -110,7 +99,7 @@ class EngineStats:
 
     @classmethod
     def empty(cls, replay: int = 0) -> EngineStats:
-        return cls(0, 0, 0, 0, 0, 0, 0.0, None, 0, 0, replay)
+        return cls(0, 0, 0, 0, 0, 0, 0, 0.0, float("nan"), 0, 0, replay)
 
 
 class EngineHost:
@@ -278,10 +267,7 @@ class EngineHost:
         st = self.slam.stats()
         with self._cond:
             handed = self._next
-        lat = st.latency_ms if np.isfinite(st.latency_ms) else None
-        return EngineStats(st.frames_tracked, st.frames_mapped, st.frames_dropped, st.frames_lost, st.keyframes,
-                           st.voxels, max(0.0, st.fps), lat, st.map_version, handed,
-                           max(0, self.spec.replay - handed))
+        return EngineStats(**dataclasses.asdict(st), handed=handed, replay_pending=max(0, self.spec.replay - handed))
 
     def poses(self) -> list[PoseOut]:
         """Every tracked pose, with the newest keyframe refinements, in tracking order."""

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -321,7 +322,8 @@ class Session:
             id=self.id, name=self.name, mode=self.mode, state=self.state, created_at=self.created_at,
             frames_received=len(self.recorder), frames_tracked=st.frames_tracked, frames_mapped=st.frames_mapped,
             frames_dropped=st.frames_dropped, frames_lost=st.frames_lost, keyframes=st.keyframes, voxels=st.voxels,
-            fps=st.fps, latency_ms=st.latency_ms, last_error=self.last_error, map_version=st.map_version,
+            fps=max(0.0, st.fps), latency_ms=st.latency_ms if math.isfinite(st.latency_ms) else None,
+            last_error=self.last_error, map_version=st.map_version,
             replay_pending=replay_pending, frames_queued=queued, worker_pid=pid, worker_node=node,
             worker_restarts=self.worker_restarts)
 
