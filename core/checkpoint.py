@@ -6,7 +6,6 @@ timestamps and poses, the trajectory and the full config; loading it reproduces 
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import tempfile
 from dataclasses import dataclass
@@ -18,7 +17,7 @@ import torch
 
 from .config import config_from_dict, config_to_dict
 from .errors import CaptureError, ValidationError
-from .mapping import Mapper
+from .mapping import Mapper, make_mapper
 from .slam_config import VoxFusionConfig
 from .trajectory import Trajectory
 from .voxels import VoxelMap
@@ -109,9 +108,7 @@ def load_checkpoint(path: str | Path, device: torch.device | str = "cpu") -> Loa
     config = config_from_dict(VoxFusionConfig, state["config"])
     # a depth-only capture's decoder has no colour head (make_mapper drops it); rebuild the same shape
     has_color = any(k.startswith("color_net.") for k in state["decoder"])
-    field_config = dataclasses.replace(config.field, use_color=config.field.use_color and has_color)
-    mapper = Mapper(config.voxel_size_m, field_config, config.render, config.loss, config.mapping,
-                    device=device, seed=config.seed)
+    mapper = make_mapper(config, has_color=has_color, device=device)
     mapper.voxels = VoxelMap.from_state_dict(state["voxels"], device=device, seed=config.seed)
     mapper.decoder.load_state_dict(state["decoder"])
     mapper.rebuild_optimizer()

@@ -23,6 +23,7 @@ import dataclasses
 import random
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -39,7 +40,10 @@ from .optim import adam
 from .render import RenderConfig, camera_rays, render_rays
 from .voxels import VoxelMap
 
-__all__ = ["MappingConfig", "Keyframe", "MappingStep", "Mapper"]
+if TYPE_CHECKING:
+    from .slam_config import VoxFusionConfig
+
+__all__ = ["MappingConfig", "Keyframe", "MappingStep", "Mapper", "make_mapper"]
 
 
 @dataclass(frozen=True)
@@ -364,3 +368,14 @@ class Mapper:
         from .slam import MapSnapshot
 
         return MapSnapshot.of(self).mesh(mesh_res, support, colors)
+
+
+def make_mapper(config: VoxFusionConfig, has_color: bool = True, device: torch.device | str | None = None) -> Mapper:
+    """The one way a :class:`Mapper` is built from a run's configuration (SLAM, known-pose mapping, checkpoint
+    loading): on ``device`` (default: the configured one); the colour head is dropped for depth-only captures
+    (``has_color=False``)."""
+    from .slam_config import resolve_device
+
+    field_cfg = config.field if has_color else dataclasses.replace(config.field, use_color=False)
+    return Mapper(config.voxel_size_m, field_cfg, config.render, config.loss, config.mapping,
+                  device=resolve_device(config.device) if device is None else device, seed=config.seed)

@@ -21,10 +21,10 @@ from .datasets.frame import Capture
 from .errors import ValidationError
 from .eval.report import write_json
 from .framedata import frame_to_device
-from .mapping import Mapper, MappingStep
+from .mapping import Mapper, MappingStep, make_mapper
 from .mesh import export_mesh
 from .run import reference_world_axes, write_mesh_views
-from .slam_config import VoxFusionConfig, resolve_device
+from .slam_config import VoxFusionConfig
 from .trajectory import Trajectory, write_tum_trajectory
 from .voxel_export import export_voxels
 
@@ -63,13 +63,6 @@ class MapRunResult:
             "ms_per_mapping_iteration": map_ms / iters if iters else float("nan"),
             "mesh_extraction_s": self.mesh_s,
         }
-
-
-def make_mapper(config: VoxFusionConfig, has_color: bool = True) -> Mapper:
-    """A :class:`Mapper` on the configured device; the colour head is dropped for depth-only captures."""
-    field_cfg = config.field if has_color else dataclasses.replace(config.field, use_color=False)
-    return Mapper(config.voxel_size_m, field_cfg, config.render, config.loss, config.mapping,
-                  device=resolve_device(config.device), seed=config.seed)
 
 
 def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path | None = None,

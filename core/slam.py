@@ -41,7 +41,7 @@ from .field import SDFDecoder
 from .frame_checks import MIN_INIT_VALID_PIXELS, intrinsics_problem, usable_pose
 from .framedata import FrameData, frame_to_device
 from .geometry import invert_pose, nearest_rigid
-from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views
+from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper
 from .mesh import extract_map_mesh
 from .mesh.frame import WorldAxes, camera_up_forward
 from .render import RenderConfig, RenderedImage, render_depth_image
@@ -133,6 +133,13 @@ class MapSnapshot:
         ckpt = load_checkpoint(path, device)
         return cls.of(ckpt.mapper), ckpt.config
 
+    def save(self, path: str | Path, config: VoxFusionConfig, trajectory: Trajectory | None = None) -> Path:
+        """Write this map (voxels, decoder, keyframe poses) with ``config`` and ``trajectory`` as an atomic
+        checkpoint (:func:`.checkpoint.save_checkpoint`); any thread may save a snapshot."""
+        from .checkpoint import save_checkpoint
+
+        return save_checkpoint(path, self, config, trajectory)
+
     def render(self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int,
                config: RenderConfig) -> RenderedImage:
         """Depth (and colour) at a camera: ``K`` ``[3, 3]``, ``T_world_cam`` ``[4, 4]`` camera-to-world (OpenCV
@@ -198,9 +205,7 @@ class SlamSystem:
     def _init_engine(self, frame: RGBDFrame) -> None:
         use_color = self._use_color if self._use_color is not None else frame.color is not None
         self._use_color = use_color
-        field_cfg = self.config.field if use_color else dataclasses.replace(self.config.field, use_color=False)
-        self.mapper = Mapper(self.config.voxel_size_m, field_cfg, self.config.render, self.config.loss,
-                             self.config.mapping, device=self.device, seed=self.config.seed)
+        self.mapper = make_mapper(self.config, has_color=use_color, device=self.device)
         self.tracker = Tracker(self.config.tracking, self.config.render, use_color, seed=self.config.seed)
 
     def _to_device(self, frame: RGBDFrame) -> FrameData:

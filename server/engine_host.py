@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from voxfusion.core.checkpoint import atomic_write_bytes, save_checkpoint
+from voxfusion.core.checkpoint import atomic_write_bytes
 from voxfusion.core.config import config_from_dict
 from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.errors import EngineFailedError, MapNotReadyError
@@ -255,9 +255,9 @@ class EngineHost:
         if mapper is None or snap is None:
             return
         keyframes = tuple(mapper.keyframes)
-        source: Any = dataclasses.replace(snap, keyframes=keyframes) if from_snapshot else mapper
+        source = dataclasses.replace(snap, keyframes=keyframes) if from_snapshot else MapSnapshot.of(mapper)
         poses = self.poses()
-        save_checkpoint(self.folder / CHECKPOINT_FILE, source, self.config, self.slam.trajectory())
+        source.save(self.folder / CHECKPOINT_FILE, self.config, self.slam.trajectory())
         atomic_write_bytes(self.folder / POSES_FILE, json.dumps([p.model_dump(mode="json") for p in poses]).encode())
         self._ckpt_version = source.version
         self._ckpt_keyframes = len(keyframes)

@@ -132,6 +132,10 @@ class SessionManager:
             from .ray_worker import connect
 
             connect(self.settings.ray_address or "auto")
+        elif self.settings.session_workers == "process":  # the first session should not wait for the forkserver
+            from .worker import warm_up
+
+            threading.Thread(target=warm_up, name="voxfusion-worker-warm-up", daemon=True).start()
         detached = [r.id for r in self.store.all() if r.state in _OPEN_STATES]
         if detached:
             log.info("%d session(s) were open when the server stopped; they resume on request or on their next "

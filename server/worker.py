@@ -39,7 +39,8 @@ from voxfusion.core.errors import VoxFusionError
 
 from .engine_host import HOST_VERBS, EngineHost, HostSpec
 
-__all__ = ["SessionWorker", "ProcessWorker", "ThreadWorker", "WorkerLostError", "start_worker", "WORKER_KINDS"]
+__all__ = ["SessionWorker", "ProcessWorker", "ThreadWorker", "WorkerLostError", "start_worker", "warm_up",
+           "WORKER_KINDS"]
 
 log = logging.getLogger("voxfusion.server")
 
@@ -141,6 +142,18 @@ def _context() -> multiprocessing.context.BaseContext:
                 ctx = multiprocessing.get_context("spawn")
             _CONTEXT = ctx
         return _CONTEXT
+
+
+def _noop() -> None:
+    """What :func:`warm_up`'s process runs."""
+
+
+def warm_up() -> None:
+    """Start the forkserver now (it imports the engine: about 2 s on a small CPU), so that the first session
+    does not wait for it. Blocks until a first worker-sized process has started and ended."""
+    proc = _context().Process(target=_noop, daemon=True, name="voxfusion-worker-warm-up")
+    proc.start()
+    proc.join(timeout=120)
 
 
 class ProcessWorker:

@@ -245,11 +245,10 @@ def test_poses_out_of_reach_are_ignored_not_fatal(capture):
 def test_map_snapshot_verbs_survive_a_checkpoint(capture, tmp_path):
     """The front door: a snapshot saved and loaded back renders, meshes and exports exactly like the live one."""
     from voxfusion.core import MapSnapshot
-    from voxfusion.core.checkpoint import save_checkpoint
 
     slam = run_offline(capture, 0)
     live = slam.snapshot
-    save_checkpoint(tmp_path / "map.pt", live, slam.config, slam.trajectory())
+    live.save(tmp_path / "map.pt", slam.config, slam.trajectory())
     loaded, config = MapSnapshot.load(tmp_path / "map.pt")
     assert loaded.version == live.version and config == slam.config
     f = capture[4]
