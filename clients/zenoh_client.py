@@ -111,7 +111,9 @@ class ZenohClient(BaseClient):
         try:
             self._z = zenoh.open(config)
         except zenoh.ZError as e:
-            raise TransportError(f"cannot open the zenoh session: {e}") from e
+            raise TransportError(f"cannot open the zenoh session: {e}. Is the server running and listening there? "
+                                 "A server started with --zenoh-secrets DIR accepts only clients with its "
+                                 "credentials: use its DIR/client.json5 as the config") from e
         self.api_key = api_key
         self.timeout_s = float(timeout_s)
         self._window: threading.Semaphore | None = None
