@@ -81,10 +81,13 @@ class ZenohSecrets:
 
 
 def _write_private(path: Path, text: str) -> None:
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    """Write ``text`` to ``path`` readable by its owner only: a new file (mode 0600, links not followed)
+    renamed over the old one, so the secret is never in a file others could read."""
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o600)
     with os.fdopen(fd, "w") as f:
         f.write(text)
-    os.chmod(path, 0o600)
+    os.replace(tmp, path)
 
 
 def ensure_zenoh_secrets(folder: str | Path) -> ZenohSecrets:
@@ -102,7 +105,10 @@ def ensure_zenoh_secrets(folder: str | Path) -> ZenohSecrets:
     out = ZenohSecrets(folder, created=False)
     try:
         folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+        os.chmod(folder, 0o700)
         created = not out.credentials.exists()
+        if not created:
+            os.chmod(out.credentials, 0o600)
         if created:
             _write_private(out.credentials, f"{SERVER_USER}:{secrets.token_urlsafe(24)}\n"
                                             f"{CLIENT_USER}:{secrets.token_urlsafe(24)}\n")
@@ -123,10 +129,13 @@ def ensure_zenoh_secrets(folder: str | Path) -> ZenohSecrets:
 
 
 def config_authenticates(cfg: zenoh.Config) -> bool:
-    """Whether a zenoh config makes peers authenticate (user-password dictionary, or mutual TLS)."""
+    """Whether a zenoh config makes peers authenticate (user-password dictionary, or mutual TLS) and limits what
+    they may do (access control enabled): authentication alone would let any client serve the keys that
+    carry tokens."""
     usrpwd = cfg.get_json("transport/auth/usrpwd/dictionary_file")
     mtls = cfg.get_json("transport/link/tls/enable_mtls")
-    return json.loads(usrpwd) is not None or json.loads(mtls) is True
+    acl = cfg.get_json("access_control/enabled")
+    return (json.loads(usrpwd) is not None or json.loads(mtls) is True) and json.loads(acl) is True
 
 
 def non_loopback_endpoints(cfg: zenoh.Config) -> list[str]:

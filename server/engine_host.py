@@ -120,7 +120,8 @@ class EngineHost:
         self._cond = threading.Condition()
         self._available = 0
         self._next = 0  # the next record to hand to the engine
-        self._current: int | None = None  # the record the engine was last handed
+        self._failed_record: int | None = None  # the frame the engine failed on, when that is certain
+        self._paced_record: int | None = None  # the record a paced submit is waiting on (the engine's only frame)
         self._submitted = 0
         self._tracked = 0
         self._stop = False
@@ -195,13 +196,23 @@ class EngineHost:
                 except FrameDecodeError as e:  # recorded before the door refused such frames: skip it
                     log.warning("session %s: skipping recorded frame %d: %s", self.spec.session_id, index, e)
                     continue
-                self._current = index
-                self._submit(frame, paced=index < self.spec.replay or self._paced_live)
+                paced = index < self.spec.replay or self._paced_live
+                self._paced_record = index if paced else None
+                try:
+                    self._submit(frame, paced=paced)
+                    self._paced_record = None
+                except EngineFailedError as e:
+                    # paced, the engine was working on this frame alone: it is the one to leave out on resume;
+                    # unpaced (realtime), it may have been an older frame: a resume replays paced and finds it
+                    self._fail(e, record=index if paced else None)
+                    return
         except Exception as e:  # noqa: BLE001 - any failure fails this session only
             self._fail(e)
 
     # ------------------------------------------------------------------ health, checkpoints
-    def _fail(self, error: BaseException | str) -> None:
+    def _fail(self, error: BaseException | str, record: int | None = None) -> None:
+        """Fail the session once; ``record``: the recording position of the frame the engine failed on, only
+        when that is certain (a paced frame), so that a resume can leave it out."""
         cause = self.slam.error
         if isinstance(error, str):
             message = error
@@ -213,10 +224,11 @@ class EngineHost:
             if self.error is not None:
                 return
             self.error = message
+            self._failed_record = record
             self._stop = True
             self._cond.notify_all()
-        log.error("session %s: engine failed on record %s: %s", self.spec.session_id, self._current, message)
-        self._emit(("failed", message, self._current))
+        log.error("session %s: engine failed (record %s): %s", self.spec.session_id, record, message)
+        self._emit(("failed", message, record))
         threading.Thread(target=self.slam.close, name=f"voxfusion-close-{self.spec.session_id[:8]}",
                          daemon=True).start()
 
@@ -227,7 +239,7 @@ class EngineHost:
                 if self._stop or self._finishing:
                     return
             if self.slam.error is not None:
-                self._fail(EngineFailedError(str(self.slam.error)))
+                self._fail(EngineFailedError(str(self.slam.error)), record=self._paced_record)
                 return
             try:
                 self._periodic_checkpoint(time.monotonic())
@@ -311,13 +323,18 @@ class EngineHost:
         return snap.export(fmt), snap.version
 
     # ------------------------------------------------------------------ finish, close (verbs)
-    def finish(self, timeout_s: float) -> EngineStats:
+    def finish(self, timeout_s: float, records: int | None = None) -> EngineStats:
         """Track and map every available record, run the final mapping, and write the final checkpoint,
         mesh (``mesh.ply`` + sidecar), poses and TUM trajectory. Idempotent; blocks until done.
+
+        ``records``: how many records the recording holds now (every acknowledged frame), so that none is left
+        out whatever the order notices arrived in.
 
         Raises:
             EngineFailedError: the engine failed (before or while finishing); ``record`` names the frame.
         """
+        if records is not None:
+            self.available(records)
         with self._finish_lock:
             if self._finished:
                 return self.stats()
@@ -326,6 +343,7 @@ class EngineHost:
                 self._finishing = True
                 self._cond.notify_all()
             deadline = time.monotonic() + timeout_s
+            self._keeper.join(timeout_s)  # no periodic checkpoint may land after the final one
             self._feeder.join(timeout_s)
             if self._feeder.is_alive():
                 self._fail(f"finish timed out after {timeout_s:.0f} s with frames still queued")
@@ -349,7 +367,7 @@ class EngineHost:
 
     def _raise_if_failed(self) -> None:
         if self.error is not None:
-            raise EngineFailedError(self.error, self._current)
+            raise EngineFailedError(self.error, self._failed_record)
 
     def close(self, checkpoint: bool = True) -> None:
         """Stop the feeder and the engine (records not yet handed over stay in the recording for a later

@@ -166,12 +166,13 @@ class RayWorker:
         while True:
             try:
                 events = ray.get(self._actor.events.remote(_EVENT_POLL_S))
-            except Exception as e:  # noqa: BLE001 - RayActorError and friends: the actor is gone
+            except Exception as e:  # noqa: BLE001 - RayActorError and friends: the actor is gone or unreachable
                 with self._lock:
                     closing = self._closing
                 if not closing:
                     log.warning("session %s: its Ray actor on node %s is gone (%s: %s)", self.spec.session_id,
                                 self.node_id, type(e).__name__, e)
+                    self.kill()  # never two engines for one session: make sure this one is gone before a new one
                     self._on_exit(None)
                 return
             for event in events:

@@ -142,15 +142,21 @@ class Session:
         with self._cond:
             self._generation += 1
             generation = self._generation
-            self._latest = None
-            self._stats = EngineStats.empty(replay)
-            self._replay, self._handed = replay, 0
-            self._worker = start_worker(self.settings.session_workers, spec,
-                                        on_event=lambda event: self._on_event(generation, event),
-                                        on_exit=lambda code: self._on_worker_exit(generation, code),
-                                        ray=self.settings.ray_options())
-            self._worker.available(len(self.recorder))
-            self._cond.notify_all()
+        worker = start_worker(self.settings.session_workers, spec,
+                              on_event=lambda event: self._on_event(generation, event),
+                              on_exit=lambda code: self._on_worker_exit(generation, code),
+                              ray=self.settings.ray_options())
+        with self._cond:
+            wanted = generation == self._generation and not self._stop and self.state in _OPEN_STATES
+            if wanted:
+                self._latest = None
+                self._stats = EngineStats.empty(replay)
+                self._replay, self._handed = replay, 0
+                self._worker = worker
+                worker.available(len(self.recorder))
+                self._cond.notify_all()
+        if not wanted:  # closed, deleted or failed while it started
+            worker.close(checkpoint=False)
 
     def _on_event(self, generation: int, event: tuple) -> None:
         kind = event[0]
@@ -181,6 +187,7 @@ class Session:
         with self._cond:
             if generation != self._generation or self._stop or self.state not in _OPEN_STATES:
                 return
+            self._worker = None  # dead: requests get 503 until the new one is in place
             self.worker_restarts += 1
             restarts = self.worker_restarts
         if restarts > self.settings.worker_restarts:
@@ -199,7 +206,7 @@ class Session:
         with self._cond:
             worker = self._worker
         if worker is None:
-            raise WorkerUnavailableError(f"session {self.id} has no engine worker")
+            raise WorkerUnavailableError(f"session {self.id}: its engine worker is starting; retry in a few seconds")
         try:
             return worker.call(verb, *args, timeout_s=timeout_s)
         except WorkerLostError as e:
@@ -276,11 +283,9 @@ class Session:
         if record is None and isinstance(error, EngineFailedError):
             record = error.record
         if record is not None:
-            skips = sorted(set(self._skips()) | {int(record)})
-            atomic_write_bytes(self.folder / SKIP_FILE, json.dumps(skips).encode())
             message += (f" (on recorded frame {record}; POST /sessions/{self.id}/resume replays the recording "
                         "without it)")
-        with self._cond:
+        with self._cond:  # the state first: nothing below may leave a failed engine looking alive
             if self.state == SessionState.failed:
                 return
             self.state = SessionState.failed
@@ -289,11 +294,18 @@ class Session:
             worker = self._worker
             self._cond.notify_all()
         log.error("session %s failed: %s", self.id, message)
-        self.store.set_state(self.id, SessionState.failed.value, last_error=message,
-                             stats=self.status().model_dump(mode="json"))
-        if worker is not None:
-            threading.Thread(target=worker.close, args=(False,), name=f"voxfusion-close-{self.id[:8]}",
-                             daemon=True).start()
+        try:
+            if record is not None:
+                skips = sorted(set(self._skips()) | {int(record)})
+                atomic_write_bytes(self.folder / SKIP_FILE, json.dumps(skips).encode())
+            self.store.set_state(self.id, SessionState.failed.value, last_error=message,
+                                 stats=self.status().model_dump(mode="json"))
+        except Exception:  # noqa: BLE001 - e.g. a full disk: the session is failed in memory all the same
+            log.exception("session %s: recording the failure failed", self.id)
+        finally:
+            if worker is not None:
+                threading.Thread(target=worker.close, args=(False,), name=f"voxfusion-close-{self.id[:8]}",
+                                 daemon=True).start()
 
     # ------------------------------------------------------------------ queries
     @property
@@ -378,6 +390,8 @@ class Session:
                 self._finishing = True
                 self.state = SessionState.finishing
                 self._cond.notify_all()
+                while self._admitted:  # frames admitted before finishing are recorded (and counted) first
+                    self._cond.wait(0.1)
             self.store.set_state(self.id, SessionState.finishing.value)
             deadline = time.monotonic() + timeout_s
             while True:
@@ -387,7 +401,7 @@ class Session:
                 try:
                     if worker is None or left <= 0:
                         raise TimeoutError(f"finish timed out after {timeout_s:.0f} s")
-                    stats = worker.call("finish", left, timeout_s=left + 60)
+                    stats = worker.call("finish", left, len(self.recorder), timeout_s=left + 60)
                     break
                 except WorkerLostError:
                     with self._cond:  # the exit handler starts a new worker (or fails the session)

@@ -86,10 +86,14 @@ def _worker_main(conn: multiprocessing.connection.Connection, spec: HostSpec) ->
     def send(message: tuple) -> None:
         try:
             data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+            if message[0] == "reply" and not message[2]:
+                pickle.loads(data)  # an error that pickles but cannot be rebuilt would break the API's reader
         except Exception as e:  # noqa: BLE001 - an unpicklable value or error: say what it was
             if message[0] != "reply":
                 raise
-            data = pickle.dumps(("reply", message[1], False, VoxFusionError(f"{type(e).__name__}: {e}")))
+            detail = message[3] if not message[2] else e
+            data = pickle.dumps(("reply", message[1], False,
+                                 VoxFusionError(f"{type(detail).__name__}: {detail}")))
         with send_lock:
             conn.send_bytes(data)
 
@@ -117,6 +121,8 @@ def _worker_main(conn: multiprocessing.connection.Connection, spec: HostSpec) ->
                 _, call_id, verb, args = message
                 if verb not in HOST_VERBS:
                     send(("reply", call_id, False, VoxFusionError(f"unknown verb {verb!r}")))
+                elif verb in ("finish", "close"):  # never queued behind slow queries (meshes)
+                    threading.Thread(target=answer, args=(call_id, verb, args), daemon=True).start()
                 else:
                     pool.submit(answer, call_id, verb, args)
     except (EOFError, OSError):  # the API process is gone: keep the map, leave
@@ -195,7 +201,12 @@ class ProcessWorker:
     def _read(self) -> None:
         try:
             while True:
-                message = pickle.loads(self._conn.recv_bytes())
+                data = self._conn.recv_bytes()
+                try:
+                    message = pickle.loads(data)
+                except Exception:  # noqa: BLE001 - one bad message must not stop the replies and events
+                    log.exception("session %s: unreadable message from the worker", self.spec.session_id)
+                    continue
                 if message[0] == "event":
                     try:
                         self._on_event(message[1])
