@@ -51,7 +51,7 @@ from voxfusion.proto.schemas import PoseOut, RenderRequest
 from .outputs import MeshDetail, pose_out
 from .stored import CHECKPOINT_FILE, MESH_FILE, POSES_FILE, TRAJECTORY_FILE
 
-__all__ = ["HostSpec", "EngineHost", "EngineStats", "HOST_VERBS", "Emit"]
+__all__ = ["HostSpec", "EngineHost", "HOST_VERBS", "Emit"]
 
 log = logging.getLogger("voxfusion.server")
 
@@ -86,20 +86,6 @@ class HostSpec:
     checkpoint_interval_s: float = 30.0
     checkpoint_keyframes: int = 10
     torch_threads: int = 0
-
-
-@dataclass(frozen=True)
-class EngineStats(SlamStats):
-    """The engine's counters (:class:`SlamStats`, ``latency_ms`` NaN before the first pose) and the feeder's."""
-
-    handed: int
-    """Records handed to the engine so far."""
-    replay_pending: int
-    """Records of the replay not yet handed to the engine."""
-
-    @classmethod
-    def empty(cls, replay: int = 0) -> EngineStats:
-        return cls(0, 0, 0, 0, 0, 0, 0, 0.0, float("nan"), 0, 0, replay)
 
 
 class EngineHost:
@@ -274,11 +260,10 @@ class EngineHost:
         self._ckpt_keyframes = len(keyframes)
 
     # ------------------------------------------------------------------ queries (verbs)
-    def stats(self) -> EngineStats:
-        st = self.slam.stats()
-        with self._cond:
-            handed = self._next
-        return EngineStats(**dataclasses.asdict(st), handed=handed, replay_pending=max(0, self.spec.replay - handed))
+    def stats(self) -> SlamStats:
+        """The engine's counters (``latency_ms`` NaN before the first pose); the API process counts handed and
+        replayed records itself, from the ``handed`` events."""
+        return self.slam.stats()
 
     def poses(self) -> list[PoseOut]:
         """Every tracked pose, with the newest keyframe refinements, in tracking order."""
@@ -323,7 +308,7 @@ class EngineHost:
         return snap.export(fmt), snap.version
 
     # ------------------------------------------------------------------ finish, close (verbs)
-    def finish(self, timeout_s: float, records: int | None = None) -> EngineStats:
+    def finish(self, timeout_s: float, records: int | None = None) -> SlamStats:
         """Track and map every available record, run the final mapping, and write the final checkpoint,
         mesh (``mesh.ply`` + sidecar), poses and TUM trajectory. Idempotent; blocks until done.
 

@@ -39,6 +39,7 @@ from voxfusion.core.checkpoint import atomic_write_bytes
 from voxfusion.core.config import config_to_dict
 from voxfusion.core.errors import EngineFailedError
 from voxfusion.core.render import RenderedImage
+from voxfusion.core.slam import SlamStats
 from voxfusion.core.slam_config import VoxFusionConfig
 from voxfusion.proto import FrameDecodeError, decode_frame, read_header
 from voxfusion.proto.api_extra import SessionStatusOut
@@ -46,7 +47,7 @@ from voxfusion.proto.frame_codec import DecodeLimits
 from voxfusion.proto.recording import RECORDING_FILENAME, RecordingWriter, iter_messages, scan_recording
 from voxfusion.proto.schemas import PoseOut, RenderRequest, SessionMode, SessionState
 
-from .engine_host import EngineStats, HostSpec
+from .engine_host import HostSpec
 from .errors import NotReadyError, QueueFullError, SessionConflictError, WorkerUnavailableError
 from .live_frame import LatestFrame
 from .outputs import MeshDetail
@@ -66,6 +67,8 @@ SKIP_FILE = "skip.json"
 
 _OPEN_STATES = (SessionState.created, SessionState.running, SessionState.finishing)
 _STATS_TIMEOUT_S = 5.0
+_NO_STATS = SlamStats(0, 0, 0, 0, 0, 0, 0, 0.0, float("nan"), 0)
+"""The counters of an engine that has not answered yet."""
 _QUERY_TIMEOUT_S = 300.0
 
 
@@ -118,7 +121,7 @@ class Session:
         self.worker_restarts = 0
         self._generation = 0
         self._worker: SessionWorker | None = None
-        self._stats = EngineStats.empty(replay_total)
+        self._stats = _NO_STATS
         self._replay = self._handed = 0  # records the current worker replays / has handed to its engine
         self._start_worker(replay_total)
 
@@ -150,7 +153,7 @@ class Session:
             wanted = generation == self._generation and not self._stop and self.state in _OPEN_STATES
             if wanted:
                 self._latest = None
-                self._stats = EngineStats.empty(replay)
+                self._stats = _NO_STATS
                 self._replay, self._handed = replay, 0
                 self._worker = worker
                 worker.available(len(self.recorder))
