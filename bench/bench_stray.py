@@ -46,7 +46,7 @@ def run_variant(capture_path: Path, preset: str, overrides: list[str], prior: bo
         "ate_rmse_cm_anchored": 100 * m["ate_none"]["rmse_m"],
         "depth_disagreement_cm": m.get("depth_consistency"),
         "stats": result.stats,
-        "speed": timing_summary(result.slam, result.wall_s),
+        "speed": timing_summary(result),
         "config": config_to_dict(result.slam.config),
     }
 

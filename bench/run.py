@@ -183,21 +183,22 @@ def _voxfusion_result(capture: Capture, args: argparse.Namespace, known_poses: b
     with PeakMemory() as mem:
         if known_poses:
             r = map_capture(capture, config, progress=args.progress)
-            traj, mesh, wall = r.trajectory, r.mesh, r.wall_s
+            traj, mesh, fps = r.trajectory, r.mesh, r.fps
             frame_ms = np.array([s.time_ms for s in r.steps])
             extra = {**r.timing_summary(), "voxels": r.mapper.voxels.n_voxels}
             mapper, used = r.mapper, r.config
         else:
             r = run_capture(capture, config, progress=args.progress, evaluate=False)
-            traj, mesh, wall = r.trajectory, r.mesh, r.wall_s
+            traj, mesh = r.trajectory, r.mesh
             frame_ms = np.array([(rec.tracking.time_ms if rec.tracking else 0.0)
                                  + (rec.mapping.time_ms if rec.mapping else 0.0) for rec in r.slam.records])
-            extra = {**timing_summary(r.slam, wall), **asdict(r.stats)}
+            extra = {**timing_summary(r), **asdict(r.stats)}
+            fps = extra["fps"] or float("nan")  # processing time: frame loading excluded, as for the baseline
             mapper, used = r.slam.mapper, r.slam.config
     mrep = mapper.voxels.memory_report(mapper.decoder)
     extra.update(embedding_mb=mrep.embedding_bytes / 1e6, decoder_mb=mrep.decoder_bytes / 1e6)
     return MethodResult(trajectory=traj, mesh=mesh if len(mesh.faces) else None, frame_ms=frame_ms,
-                        fps=len(frame_ms) / wall if wall > 0 else float("nan"), memory=mem.result,
+                        fps=fps, memory=mem.result,
                         config={"preset": preset, **config_to_dict(used)}, extra=extra)
 
 

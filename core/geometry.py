@@ -13,10 +13,11 @@ Conventions (see ../shared/GUIDE.md):
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
+import torch
 from scipy.spatial.transform import Rotation
 
 from .errors import ShapeError, ValidationError
+from .lie import se3_exp, se3_log
 
 __all__ = [
     "scale_motion",
@@ -166,7 +167,8 @@ def scale_motion(T_rel: np.ndarray, ratio: float) -> np.ndarray:
     T_rel = np.asarray(T_rel, dtype=np.float64)
     if ratio == 1.0:
         return T_rel
-    return nearest_rigid(np.real(scipy.linalg.expm(ratio * scipy.linalg.logm(T_rel))))
+    xi = se3_log(torch.from_numpy(nearest_rigid(T_rel)))  # closed forms (scipy's logm took ~7 ms per call)
+    return nearest_rigid(se3_exp(ratio * xi).numpy())
 
 
 def nearest_rigid(T: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""SE(3) exponential map in torch (differentiable), the one place poses are perturbed.
+"""SE(3) exponential and logarithm maps in torch (exp differentiable), the one place poses are perturbed.
 
 Tangent vectors are ``xi = [rho (3), phi (3)]``: ``rho`` the translational part (metres), ``phi`` the
 rotation vector (radians). Perturbations are applied on the **right** (in the camera frame):
@@ -12,7 +12,7 @@ import torch
 
 from .errors import ShapeError
 
-__all__ = ["skew", "so3_exp", "se3_exp", "perturb_right"]
+__all__ = ["skew", "so3_exp", "se3_exp", "se3_log", "perturb_right"]
 
 
 def skew(v: torch.Tensor) -> torch.Tensor:
@@ -68,3 +68,31 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
 def perturb_right(T_world_cam: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
     """``T_world_cam @ exp(xi)``: ``[..., 4, 4]`` and ``[..., 6]`` -> ``[..., 4, 4]`` (differentiable in xi)."""
     return T_world_cam.to(xi.dtype) @ se3_exp(xi)
+
+
+def se3_log(T: torch.Tensor) -> torch.Tensor:
+    """Rigid transform ``[4, 4]`` -> tangent vector ``[6]`` (rho, phi) with ``se3_exp(se3_log(T)) == T``.
+
+    Closed form (the inverse of :func:`se3_exp`): ``theta = arccos((tr R - 1) / 2)``,
+    ``phi = theta / (2 sin theta) * vee(R - R^T)``, ``rho = V^-1 t``. Rotations must be below 180 degrees
+    (within about 0.06 degrees of 180 the rotation axis is ill-conditioned from ``R - R^T`` alone);
+    :class:`ValueError` beyond that. Not differentiated anywhere; float64 recommended.
+    """
+    if T.shape != (4, 4):
+        raise ShapeError("T", tuple(T.shape), "[4, 4]")
+    R, t = T[:3, :3], T[:3, 3]
+    cos = ((R.diagonal().sum() - 1) / 2).clamp(-1.0, 1.0)
+    theta = torch.arccos(cos)
+    if float(theta) > torch.pi - 1e-3:
+        raise ValueError(f"se3_log needs a rotation below 180 degrees, got {float(theta) * 180 / torch.pi:.3f}")
+    w = torch.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    theta2 = theta * theta
+    small = theta2 < 1e-8
+    scale = torch.where(small, 0.5 + theta2 / 12, theta / (2 * torch.sin(torch.where(small, torch.ones_like(theta),
+                                                                                      theta))))
+    phi = scale * w
+    _, B, C = _coefficients((phi * phi).sum())
+    K = skew(phi)
+    V = torch.eye(3, dtype=T.dtype, device=T.device) + B * K + C * (K @ K)
+    rho = torch.linalg.solve(V, t)
+    return torch.cat([rho, phi])

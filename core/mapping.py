@@ -269,11 +269,10 @@ class Mapper:
         if frame.n_valid == 0:
             raise ValidationError("depth_m", f"frame {frame.index} has no valid depth; nothing to fuse")
         points = _backproject(frame, T, self.config.alloc_stride)
-        n_new, n_obs = self.voxels.count_new_voxels(points)
+        n_new, n_obs = self.voxels.allocate_counting(points, self.optimizer)
         first = not self.keyframes
         is_kf = (first or self._frames_since_keyframe + 1 >= self.config.keyframe_max_interval
                  or n_new > self.config.keyframe_ratio * max(n_obs, 1))
-        self.voxels.allocate(points, self.optimizer)
         self.voxels.add_surface_points(points)  # where the scene was seen: mesh support (mesh.support)
         if self.config.evidence.enabled:
             observe_frame(self.voxels, frame, T, points, self.config.evidence,

@@ -17,7 +17,7 @@ import trimesh
 from tqdm import tqdm
 
 from .checkpoint import save_checkpoint
-from .datasets.frame import Capture
+from .datasets.frame import Capture, TimedFrames
 from .errors import ValidationError
 from .eval.report import write_json
 from .framedata import frame_to_device
@@ -46,10 +46,14 @@ class MapRunResult:
     out_dir: Path | None
     frame_indices: list[int] = dataclasses.field(default_factory=list)
     """Capture index of each trajectory row (frames without a pose or depth are skipped)."""
+    load_s: float = 0.0
+    """Seconds of ``wall_s`` spent reading frames from the capture (not the engine's time)."""
 
     @property
     def fps(self) -> float:
-        return len(self.steps) / self.wall_s if self.wall_s > 0 else float("nan")
+        """Fused frames per second of processing time (``wall_s`` minus ``load_s``)."""
+        busy = self.wall_s - self.load_s
+        return len(self.steps) / busy if busy > 0 else float("nan")
 
     def timing_summary(self) -> dict[str, float]:
         iters = sum(s.iterations for s in self.steps)
@@ -58,6 +62,7 @@ class MapRunResult:
             "frames": len(self.steps),
             "keyframes": sum(s.is_keyframe for s in self.steps),
             "wall_s": self.wall_s,
+            "load_s": self.load_s,
             "fps": self.fps,
             "mapping_iterations": iters,
             "ms_per_mapping_iteration": map_ms / iters if iters else float("nan"),
@@ -85,7 +90,8 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     skipped = 0
     t0 = time.perf_counter()
     bar = tqdm(total=n, desc=f"map {capture.name}", unit="frame", disable=not progress, dynamic_ncols=True)
-    for frame in capture.frames(0, n):
+    frames = TimedFrames(capture.frames(0, n))
+    for frame in frames:
         if frame.T_world_cam is None:
             skipped += 1
             bar.update(1)
@@ -115,7 +121,7 @@ def map_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
     mesh_s = time.perf_counter() - t1
     traj = Trajectory(np.asarray(stamps), np.stack(poses))
     result = MapRunResult(mapper, config, mesh, traj, steps, wall, mesh_s, Path(out_dir) if out_dir else None,
-                          indices)
+                          indices, load_s=frames.load_s)
     if out_dir is not None:
         write_map_outputs(result, capture)
     return result

@@ -401,7 +401,15 @@ class VoxelMap:
 
     # ------------------------------------------------------------------ allocation
     def allocate(self, points_world: torch.Tensor, optimizer: torch.optim.Optimizer | None = None) -> int:
-        """Allocate a voxel for every point that lies in no allocated voxel; returns how many were new.
+        """Allocate a voxel for every point that lies in no allocated voxel; returns how many were new
+        (:meth:`allocate_counting` without the count of voxels that existed)."""
+        return self.allocate_counting(points_world, optimizer)[0]
+
+    def allocate_counting(self, points_world: torch.Tensor,
+                          optimizer: torch.optim.Optimizer | None = None) -> tuple[int, int]:
+        """Allocate a voxel for every point that lies in no allocated voxel; returns ``(n_new, n_observed)``,
+        what :meth:`count_new_voxels` would have said before the call (the keyframe test's ``N_c``, ``N_o``),
+        from the same pass over the points.
 
         Duplicates are merged and the call is idempotent. New voxels are appended in ascending Morton
         order, active and with zero evidence; their missing corner vertices get fresh
@@ -421,8 +429,9 @@ class VoxelMap:
         is_new = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes) < 0
         new_codes, new_coords = codes[is_new], coords[is_new]
         k = int(new_codes.numel())
+        n_observed = int(codes.numel()) - k
         if k == 0:
-            return 0
+            return 0, n_observed
         # vertices of the new voxels
         corner_codes = morton_encode(new_coords[:, None, :] + CORNER_OFFSETS.to(self.device))  # [k, 8]
         cand = torch.unique(corner_codes)
@@ -455,7 +464,7 @@ class VoxelMap:
         self._invalidate_grids()
         if optimizer is not None:
             self.grow_optimizer_state(optimizer)
-        return k
+        return k, n_observed
 
     def grow_optimizer_state(self, optimizer: torch.optim.Optimizer) -> int:
         """Point ``optimizer`` at the current ``embeddings`` after growth, keeping old rows' state.
@@ -533,7 +542,6 @@ class VoxelMap:
         pts = points_world.to(self.device, torch.float64)
         pts = pts[torch.isfinite(pts).all(dim=1)]
         cells = torch.floor(pts / self.voxel_size_m * SURFACE_CELLS).to(torch.int64)  # global surface cells
-        cells = torch.unique(cells, dim=0)
         ijk = torch.div(cells, SURFACE_CELLS, rounding_mode="floor")
         idx = self.lookup_allocated_cells(ijk)
         keep = idx >= 0
@@ -541,8 +549,10 @@ class VoxelMap:
             return 0
         local = cells[keep] - ijk[keep] * SURFACE_CELLS
         bit = (local[:, 0] * SURFACE_CELLS + local[:, 1]) * SURFACE_CELLS + local[:, 2]
-        byte_key = idx[keep] * _SURFACE_BYTES + bit // 8
-        keys, inverse = torch.unique(byte_key, return_inverse=True)
+        # one int64 key per (voxel, cell): a 1-D unique (a sort) instead of a row-wise unique over [N, 3]
+        cell_key = torch.unique(idx[keep] * SURFACE_CELLS**3 + bit)
+        bit = cell_key % 8
+        keys, inverse = torch.unique(cell_key // 8, return_inverse=True)
         # the cells are unique, so per byte the sum of distinct powers of two is their bitwise OR
         add = torch.zeros(len(keys), dtype=torch.int32, device=self.device)
         add.index_add_(0, inverse, (1 << (bit % 8)).to(torch.int32))

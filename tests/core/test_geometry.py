@@ -98,3 +98,17 @@ def test_tum_trajectory_errors_name_file_and_line(tmp_path):
         read_tum_trajectory(p)
     with pytest.raises(Exception, match="not found"):
         read_tum_trajectory(tmp_path / "nope.txt")
+
+
+def test_scale_motion_is_constant_velocity_on_se3():
+    """Twice a motion is the motion applied twice; half of it, applied twice, is the motion."""
+    import torch
+
+    from voxfusion.core.geometry import scale_motion
+    from voxfusion.core.lie import se3_exp
+
+    T = se3_exp(torch.tensor([0.05, -0.02, 0.03, 0.1, -0.2, 0.05], dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(scale_motion(T, 2.0), T @ T, atol=1e-10)
+    half = scale_motion(T, 0.5)
+    np.testing.assert_allclose(half @ half, T, atol=1e-10)
+    assert scale_motion(T, 1.0) is not None and np.allclose(scale_motion(T, 1.0), T)

@@ -116,6 +116,10 @@ def test_count_new_voxels_does_not_allocate():
     assert n_obs == n_before
     assert n_new == vm.allocate(b)
     assert vm.count_new_voxels(b) == (0, n_new)
+    c = _random_points(300, 3, 1.0) + 2.5  # new voxels; with a and b: the counting allocation says the same
+    expected = vm.count_new_voxels(torch.cat([a, b, c]))
+    assert vm.allocate_counting(torch.cat([a, b, c])) == expected and expected[0] > 0
+    assert vm.count_new_voxels(c) == (0, expected[0])
 
 
 def test_allocation_rejects_bad_points_naming_the_field():

@@ -108,7 +108,7 @@ def register(app: typer.Typer) -> None:
         cfg = config_for_capture(cap, config, overrides, device)
         result = run_capture(cap, cfg, out, speed=speed)
         st = result.stats
-        rows = [{"metric": k, "value": v} for k, v in timing_summary(result.slam, result.wall_s).items()]
+        rows = [{"metric": k, "value": v} for k, v in timing_summary(result).items()]
         rows += [{"metric": "frames tracked / lost / dropped",
                   "value": f"{st.frames_tracked} / {st.frames_lost} / {st.frames_dropped}"},
                  {"metric": "keyframes", "value": st.keyframes}, {"metric": "voxels", "value": st.voxels}]
