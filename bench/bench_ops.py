@@ -14,7 +14,9 @@ first 10 frames with the ``cpu`` sizes; then:
 * ``tracking/render``: the paper's tracker (Adam through the volume renderer), per iteration;
 * ``tracking/sdf``: the geometric tracker (Levenberg-Marquardt on point-to-SDF residuals), per iteration
   (one field evaluation + one backward pass + a 6x6 solve);
-* ``mapping``: one :meth:`Mapper.optimize` iteration (window of keyframes, render, losses, Adam).
+* ``mapping/band`` and ``mapping/voxels``: one :meth:`Mapper.optimize` iteration (window of keyframes,
+  render, losses, Adam) with the fixed-shape band sampler and with the paper's voxel sampler (``mapping``
+  on a checkout that has only the latter).
 
 Counted: every ``aten::`` operator event (nested ones included, so a composite op counts with its parts),
 and the ones that make the host wait on a GPU: ``_local_scalar_dense`` (``.item()``, ``float()``,
@@ -96,9 +98,17 @@ def main(argv: list[str] | None = None) -> int:
                       "host_syncs_per_iteration": c["host_syncs"] / per_call,
                       "host_syncs_per_frame": c["host_syncs"], "sync_ops_per_frame": c["sync_ops"]}
     iters = 5
-    c = count_ops(lambda: mapper.optimize(iters, newest=mapper.keyframes[-1]), args.repeats)
-    rows["mapping"] = {"iterations_per_round": iters, "aten_ops_per_iteration": c["aten_ops"] / iters,
-                       "host_syncs_per_iteration": c["host_syncs"] / iters, "sync_ops_per_round": c["sync_ops"]}
+    samplers = {"mapping": None}  # the checked-out default
+    if "sampler" in {f.name for f in dataclasses.fields(type(mapper.config))}:
+        samplers = {"mapping/band": "band", "mapping/voxels": "voxels"}
+    default_config = mapper.config
+    for name, sampler in samplers.items():
+        if sampler is not None:
+            mapper.config = dataclasses.replace(default_config, sampler=sampler)
+        c = count_ops(lambda: mapper.optimize(iters, newest=mapper.keyframes[-1]), args.repeats)
+        rows[name] = {"iterations_per_round": iters, "aten_ops_per_iteration": c["aten_ops"] / iters,
+                      "host_syncs_per_iteration": c["host_syncs"] / iters, "sync_ops_per_round": c["sync_ops"]}
+    mapper.config = default_config
 
     print(f"{'scenario':<18}{'aten ops / it':>15}{'host syncs / it':>17}")
     for name, r in rows.items():

@@ -262,6 +262,15 @@ class NeuralField:
         feats = interpolate(self.voxel_map, points_world, voxel_idx, loc)
         return self.decoder(feats, loc, with_color=with_color)
 
+    def evaluate_unchecked(self, points_world: torch.Tensor, voxel_idx: torch.Tensor,
+                           with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """As calling the field, without the check that every ``voxel_idx`` is >= 0, so it never waits for
+        the device: for fixed-shape callers that pass ``idx.clamp(min=0)`` and mask the points outside the
+        map themselves (their values are meaningless)."""
+        loc = local_coords(self.voxel_map, points_world, voxel_idx)
+        feats = interpolate_unchecked(self.voxel_map, points_world, voxel_idx, loc)
+        return self.decoder(feats, loc, with_color=with_color)
+
 
 def query(voxel_map: VoxelMap, decoder: SDFDecoder, points_world: torch.Tensor,
           chunk: int = 65536, with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:

@@ -44,6 +44,9 @@ __all__ = [
     "sample_along_hits",
     "RenderOutput",
     "render_rays",
+    "composite",
+    "band_samples",
+    "render_band",
     "RenderedImage",
     "render_depth_image",
 ]
@@ -264,6 +267,26 @@ def render_rays(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torc
     pts = origins[:, None, :] + dirs[:, None, :] * t[:, :, None]  # [N, S, 3]
     sdf_v, rgb_v = field(pts[mask], smp.voxel_idx[mask])
     sdf = sdf_v.new_zeros(n, s).masked_scatter(mask, sdf_v)
+    rgb = None
+    if rgb_v is not None:
+        rgb = rgb_v.new_zeros(n, s, 3).masked_scatter(mask[:, :, None].expand(n, s, 3), rgb_v)
+    return composite(sdf, rgb, t, mask, dn, hits.hit, config)
+
+
+def composite(sdf: torch.Tensor, rgb: torch.Tensor | None, t: torch.Tensor, mask: torch.Tensor,
+              dir_norm: torch.Tensor, hit: torch.Tensor, config: RenderConfig) -> RenderOutput:
+    """Depth and colour from the field at each ray's samples (paper eq. 1-4), the stage every sampler shares.
+
+    Args:
+        sdf: ``[N, S]`` metres (anything where ``mask`` is False; it gets no weight); rgb: ``[N, S, 3]`` or None.
+        t: ``[N, S]`` ascending sample parameters (t-units); mask: ``[N, S]`` bool, samples the field covers.
+        dir_norm: ``[N]`` metres per unit ``t``; hit: ``[N]`` bool, rays that have samples.
+
+    Weights ``w = sigmoid(s / b) sigmoid(-s / b)``, zero beyond the first front-facing zero crossing plus
+    the truncation. Fixed shapes and no host synchronisation.
+    """
+    n, s = t.shape
+    sdf = torch.where(mask, sdf, torch.zeros_like(sdf))
     b = config.weight_scale_m
     w = torch.sigmoid(sdf / b) * torch.sigmoid(-sdf / b) * mask
     with torch.no_grad():
@@ -274,18 +297,90 @@ def render_rays(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torc
             t_cross = t.gather(1, cross.to(torch.int8).argmax(1, keepdim=True))
         else:
             t_cross = t.new_zeros(n, 1)
-        keep = ~surface[:, None] | (t <= t_cross + config.truncation_m / dn.clamp(min=1e-12)[:, None])
+        keep = ~surface[:, None] | (t <= t_cross + config.truncation_m / dir_norm.clamp(min=1e-12)[:, None])
     w = w * keep
     w_sum = w.sum(1)
     weights = w / w_sum.clamp(min=1e-20)[:, None]
     depth = (weights * t).sum(1)
     color = None
-    if rgb_v is not None:
-        rgb = rgb_v.new_zeros(n, s, 3).masked_scatter(mask[:, :, None].expand(n, s, 3), rgb_v)
-        color = (weights[:, :, None] * rgb).sum(1)
-    return RenderOutput(depth=depth, color=color, weight_sum=w_sum, hit=hits.hit, surface=surface, t=t,
-                        sdf=sdf, weights=weights, sample_mask=mask, dir_norm=dn,
+    if rgb is not None:
+        color = (weights[:, :, None] * torch.where(mask[:, :, None], rgb, torch.zeros_like(rgb))).sum(1)
+    return RenderOutput(depth=depth, color=color, weight_sum=w_sum, hit=hit, surface=surface, t=t,
+                        sdf=sdf, weights=weights, sample_mask=mask, dir_norm=dir_norm,
                         truncation_m=config.truncation_m)
+
+
+def band_samples(depth: torch.Tensor, dir_norm: torch.Tensor, n_band: int, n_free: int, truncation_m: float,
+                 free_range_m: float, training: bool, generator: torch.Generator | None = None) -> torch.Tensor:
+    """A fixed number of samples per ray around an observed depth (for rays with known depth: mapping).
+
+    ``n_free`` strata over the ``free_range_m`` metres in front of the truncation band, then ``n_band``
+    strata over the band ``|D - t| |d| <= tr`` itself; jittered when ``training``, midpoints otherwise.
+
+    Args:
+        depth: ``[N]`` observed depth ``D`` in t-units (> 0); dir_norm: ``[N]`` metres per unit ``t``.
+
+    Returns ``t [N, n_free + n_band]``, ascending per ray, >= 0 (a free stratum that would start behind
+    the camera is squeezed into ``[0, D - tr / |d|]``).
+    """
+    if n_band < 1 or n_free < 0:
+        raise ValidationError("n_band/n_free", f"need n_band >= 1 and n_free >= 0, got {n_band}/{n_free}")
+    n = depth.shape[0]
+    dev, dtype = depth.device, depth.dtype
+    dn = dir_norm.to(dev, dtype).clamp(min=1e-12)
+    band_lo = (depth - truncation_m / dn).clamp(min=0)
+    band_hi = depth + truncation_m / dn
+    free_lo = (band_lo - free_range_m / dn).clamp(min=0)
+    k = n_free + n_band
+    gdev = generator.device if generator is not None else dev
+    u = (torch.rand(n, k, generator=generator, device=gdev, dtype=dtype).to(dev) if training
+         else torch.full((n, k), 0.5, dtype=dtype, device=dev))
+    j = torch.arange(k, device=dev, dtype=dtype)
+    in_band = j >= n_free
+    lo = torch.where(in_band, band_lo[:, None], free_lo[:, None])
+    width = torch.where(in_band, (band_hi - band_lo)[:, None] / n_band, (band_lo - free_lo)[:, None] / max(n_free, 1))
+    pos = torch.where(in_band, j - n_free, j)
+    return lo + (pos + u) * width
+
+
+def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torch.Tensor, dirs: torch.Tensor,
+                depth: torch.Tensor, config: RenderConfig, n_free: int, free_range_m: float,
+                training: bool = True, generator: torch.Generator | None = None) -> RenderOutput:
+    """Render rays of known depth from a fixed number of samples per ray (:func:`band_samples`): the
+    mapping renderer. Same compositing and outputs as :func:`render_rays`, but every shape is fixed by
+    ``N`` and the config (``n_band = ceil(2 tr / step)`` keeps :func:`render_rays`' sample spacing in the
+    band) and nothing waits for the host: samples outside allocated voxels are evaluated at a clamped
+    voxel index and masked, not compacted, so a step can be captured (CUDA graphs, ``torch.compile``).
+
+    Args:
+        field: an :class:`~.field.SDFDecoder` over ``voxel_map`` or any :data:`~.field.SDFField`.
+        depth: ``[N]`` observed depth in t-units (> 0 for every ray).
+        n_free, free_range_m: free-space strata and the metres in front of the band they cover.
+    """
+    if origins.dim() != 2 or origins.shape[1] != 3:
+        raise ShapeError("origins", tuple(origins.shape), "[N, 3]")
+    if dirs.shape != origins.shape or depth.shape != origins.shape[:1]:
+        raise ShapeError("dirs/depth", (tuple(dirs.shape), tuple(depth.shape)), f"{tuple(origins.shape)} / [N]")
+    dtype = voxel_map.embeddings.dtype
+    origins = origins.to(voxel_map.device, dtype)
+    dirs = dirs.to(voxel_map.device, dtype)
+    dn = dirs.detach().norm(dim=-1)
+    step = config.step_ratio * voxel_map.voxel_size_m
+    n_band = max(1, math.ceil(2 * config.truncation_m / step - 1e-9))
+    t = band_samples(depth.to(voxel_map.device, dtype), dn, n_band, n_free, config.truncation_m, free_range_m,
+                     training, generator).detach()
+    pts = origins[:, None, :] + dirs[:, None, :] * t[:, :, None]  # [N, S, 3]
+    n, s = t.shape
+    flat = pts.reshape(-1, 3)
+    idx = voxel_map.lookup_voxels(flat.detach())
+    mask = (idx >= 0).reshape(n, s)
+    if isinstance(field, SDFDecoder):
+        sdf, rgb = NeuralField(voxel_map, field).evaluate_unchecked(flat, idx.clamp(min=0))
+    else:  # any SDFField (tests: analytic surfaces); it must accept points outside the map too
+        sdf, rgb = field(flat, idx.clamp(min=0))
+    sdf = sdf.reshape(n, s)
+    rgb = rgb.reshape(n, s, 3) if rgb is not None else None
+    return composite(sdf, rgb, t, mask, dn, mask.any(1), config)
 
 
 class RenderedImage(NamedTuple):
