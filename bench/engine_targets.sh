@@ -23,6 +23,9 @@ run() {  # name, then bench/run.py arguments
 for s in $SEEDS; do
     run "targets_synthetic_100f_seed$s" --synthetic --frames 100 --seed "$s" --method baseline voxfusion
 done
+# the paper's mapping sampler (samples along the crossed voxels) beside the fixed-shape band default
+run "targets_synthetic_100f_seed0_voxel_sampler" --synthetic --frames 100 --seed 0 --method voxfusion \
+    --vf-set mapping.sampler=voxels
 # what the outlier defences cost on clean synthetic depth (mesh completion: slivers the evidence masks)
 run "targets_synthetic_100f_seed0_no_evidence" --synthetic --frames 100 --seed 0 --method voxfusion \
     --vf-set mapping.evidence.enabled=false
