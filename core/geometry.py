@@ -162,12 +162,15 @@ def backproject_depth(depth_m: np.ndarray, K: np.ndarray, T_world_cam: np.ndarra
 def scale_motion(T_rel: np.ndarray, ratio: float) -> np.ndarray:
     """A relative motion ``[4, 4]`` stretched to ``ratio`` times its duration at constant velocity:
     ``exp(ratio * log(T_rel))`` on SE(3) (constant angular and linear velocity in the moving frame, a screw
-    motion). ``ratio`` 1 returns ``T_rel``; rotations must be below 180 degrees.
+    motion). ``ratio`` 1 returns ``T_rel``, and so does a rotation within ~0.06 degrees of 180 (no usable log).
     """
     T_rel = np.asarray(T_rel, dtype=np.float64)
     if ratio == 1.0:
         return T_rel
-    xi = se3_log(torch.from_numpy(nearest_rigid(T_rel)))  # closed forms (scipy's logm took ~7 ms per call)
+    try:
+        xi = se3_log(torch.from_numpy(nearest_rigid(T_rel)))  # closed forms (scipy's logm took ~7 ms per call)
+    except ValueError:  # a rotation of ~180 degrees (e.g. across lost frames) has no usable log: do not scale
+        return T_rel
     return nearest_rigid(se3_exp(ratio * xi).numpy())
 
 

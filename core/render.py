@@ -372,6 +372,10 @@ def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torc
     pts = origins[:, None, :] + dirs[:, None, :] * t[:, :, None]  # [N, S, 3]
     n, s = t.shape
     flat = pts.reshape(-1, 3)
+    if voxel_map.n_voxels == 0:  # nothing to evaluate (as render_rays: no hits)
+        zeros = t.new_zeros(n, s)
+        mask = torch.zeros(n, s, dtype=torch.bool, device=t.device)
+        return composite(zeros, None, t, mask, dn, mask.any(1), config)
     idx = voxel_map.lookup_voxels(flat.detach())
     mask = (idx >= 0).reshape(n, s)
     if isinstance(field, SDFDecoder):

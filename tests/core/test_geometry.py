@@ -112,3 +112,12 @@ def test_scale_motion_is_constant_velocity_on_se3():
     half = scale_motion(T, 0.5)
     np.testing.assert_allclose(half @ half, T, atol=1e-10)
     assert scale_motion(T, 1.0) is not None and np.allclose(scale_motion(T, 1.0), T)
+
+
+def test_scale_motion_of_a_half_turn_is_left_unscaled_not_an_error():
+    """~180 degrees has no usable log; the motion prior must not raise inside a tracking worker."""
+    T = np.diag([1.0, -1.0, -1.0, 1.0])
+    T[:3, 3] = (0.1, 0.0, 0.0)
+    from voxfusion.core.geometry import scale_motion
+
+    np.testing.assert_allclose(scale_motion(T, 1.5), T)

@@ -497,3 +497,11 @@ def test_band_renderer_masks_samples_outside_the_map_and_trains_the_map():
     assert (out.weights[~out.sample_mask] == 0).all() and (out.sdf[~out.sample_mask] == 0).all()
     out.depth.sum().backward()
     assert vm.embeddings.grad is not None and vm.embeddings.grad.abs().sum() > 0
+
+
+def test_band_renderer_on_an_empty_map_renders_nothing():
+    from voxfusion.core.render import render_band
+
+    o, d = camera_rays(K_TEST, torch.eye(4), pixels_uv=torch.tensor([[15.5, 11.5]]))
+    out = render_band(VoxelMap(0.2), SDFDecoder(), o, d, torch.tensor([2.0]), RenderConfig(), 6, 0.4)
+    assert not out.hit.any() and out.depth.tolist() == [0.0]
