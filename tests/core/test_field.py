@@ -118,18 +118,24 @@ def test_gradients_reach_embeddings_and_decoder():
         NeuralField(vm, SDFDecoder(FieldConfig(embed_dim=8)))
 
 
-def test_fused_interpolation_matches_the_reference_in_values_and_gradients():
-    """The embedding_bag fast path against the plain gather-and-sum: features, and gradients to both the
-    embeddings and the points (the trackers differentiate through the trilinear weights)."""
-    from voxfusion.core.field import interpolate_reference, interpolate_unchecked
-
-    vm = VoxelMap(0.2, embed_dim=16, seed=0)
-    g = torch.Generator().manual_seed(1)
-    vm.allocate(torch.rand(400, 3, generator=g))
-    pts = torch.rand(3000, 3, generator=g) * 0.98 + 0.01
+def _map_with_points_inside(embed_dim: int, n_allocated: int, n_points: int, seed: int):
+    """A random map, points that fall in its voxels with their voxel indices, and a random output gradient."""
+    vm = VoxelMap(0.2, embed_dim=embed_dim, seed=0)
+    g = torch.Generator().manual_seed(seed)
+    vm.allocate(torch.rand(n_allocated, 3, generator=g))
+    pts = torch.rand(n_points, 3, generator=g) * 0.98 + 0.01
     idx = vm.lookup_voxels(pts)
     pts, idx = pts[idx >= 0], idx[idx >= 0]
-    out_grad = torch.randn(pts.shape[0], 16, generator=g)
+    return vm, pts, idx, torch.randn(pts.shape[0], embed_dim, generator=g)
+
+
+def test_fused_interpolation_matches_the_reference_in_values_and_gradients():
+    """The fast path (embedding_bag forward, hand-written backward) against the plain gather-and-sum:
+    features, and gradients to both the embeddings and the points (the trackers differentiate through the
+    trilinear weights)."""
+    from voxfusion.core.field import interpolate_reference, interpolate_unchecked
+
+    vm, pts, idx, out_grad = _map_with_points_inside(16, 400, 3000, seed=1)
     results = []
     for fn in (interpolate_unchecked, interpolate_reference):
         x = pts.clone().requires_grad_(True)
@@ -141,18 +147,12 @@ def test_fused_interpolation_matches_the_reference_in_values_and_gradients():
         torch.testing.assert_close(fast, ref, rtol=1e-4, atol=1e-5)  # float32 sums in another order
 
 
-def test_fused_interpolation_backward_is_reproducible_and_computes_only_what_is_asked():
+def test_fused_interpolation_backward_is_reproducible_and_serves_a_frozen_table():
     """Offline runs are bit-reproducible on CPU, so the hand-written backward must be too; and the SDF
-    tracker asks only for the points' gradient (the table's is then never built)."""
+    tracker asks only for the points' gradient, with a table that needs none."""
     from voxfusion.core.field import interpolate_unchecked
 
-    vm = VoxelMap(0.2, embed_dim=8, seed=0)
-    g = torch.Generator().manual_seed(2)
-    vm.allocate(torch.rand(300, 3, generator=g))
-    pts = torch.rand(5000, 3, generator=g) * 0.98 + 0.01
-    idx = vm.lookup_voxels(pts)
-    pts, idx = pts[idx >= 0], idx[idx >= 0]
-    out_grad = torch.randn(pts.shape[0], 8, generator=g)
+    vm, pts, idx, out_grad = _map_with_points_inside(8, 300, 5000, seed=2)
     grads = []
     for _ in range(2):
         vm.embeddings.grad = None
@@ -162,4 +162,5 @@ def test_fused_interpolation_backward_is_reproducible_and_computes_only_what_is_
     x = pts.clone().requires_grad_(True)
     vm.embeddings.requires_grad_(False)  # a frozen table: only the points need a gradient
     (gx,) = torch.autograd.grad(interpolate_unchecked(vm, x, idx), [x], out_grad)
+    assert vm.embeddings.grad is None or torch.equal(vm.embeddings.grad, grads[1])  # the table was left alone
     assert torch.isfinite(gx).all() and gx.abs().sum() > 0
