@@ -18,7 +18,11 @@ points, moved into the world with the right pose, must sit on its zero level set
   lowers the cost, else ``lambda`` grows and the step is retried from the best pose. Accept / reject is a
   ``torch.where`` on device tensors: the loop runs a fixed number of iterations and never waits for the
   host (one read-back per frame, at the end);
-* coarse to fine: ``levels`` rounds with 4x fewer points per coarser level.
+* coarse to fine: ``levels`` rounds with 4x fewer points per coarser level;
+* a level ends after ``iters`` iterations, or earlier once the next proposed step would move less than
+  ``converge_tol`` (metres and radians, largest component; that step is then not evaluated): the test is
+  read back every ``check_every`` iterations, so on a GPU the loop waits for the device at most once per
+  ``check_every`` steps (on a CPU a read-back costs nothing and 1 is right).
 
 Everything is float32 on the map's device except poses and the normal equations (float64). The device
 prior (ARKit motion) enters as a Gaussian on the accumulated correction ``xi`` (first order: the sum of
@@ -46,7 +50,11 @@ class SdfSolverConfig:
     """Options of :func:`solve_pose` (see ``TrackingConfig`` for the user-facing names)."""
 
     iters: int = 6
-    """Levenberg-Marquardt iterations per level (each one field evaluation + one backward pass)."""
+    """Levenberg-Marquardt iterations per level at most (each one field evaluation + one backward pass)."""
+    converge_tol: float = 0.0
+    """A level ends once a proposed step's largest component is below this (m / rad); 0: always ``iters``."""
+    check_every: int = 1
+    """Read the convergence test back every this many iterations (each read-back waits for the device)."""
     huber_m: float = 0.01
     """Huber scale of the SDF residual (metres); also the data term's noise scale for the device prior."""
     max_residual_m: float = 0.08
@@ -78,7 +86,7 @@ class SdfSolution:
     ``T [4, 4]`` float64 best pose; ``cost`` 0-dim mean robust cost; ``inlier_fraction`` 0-dim share of the
     finest level's points with |sdf| < ``inlier_m``; ``median_residual_m`` 0-dim median |sdf| over the
     points inside the map (0 when none); ``n_valid`` 0-dim count of points inside the map and below
-    ``max_residual_m``.
+    ``max_residual_m``; ``iterations`` (a host int) the LM iterations run over all levels.
     """
 
     T: torch.Tensor
@@ -86,6 +94,7 @@ class SdfSolution:
     inlier_fraction: torch.Tensor
     median_residual_m: torch.Tensor
     n_valid: torch.Tensor
+    iterations: int
 
 
 def sample_points(frame: FrameData, n: int, generator: torch.Generator | None = None,
@@ -185,7 +194,8 @@ def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Te
 
 def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T_init: torch.Tensor,
                cfg: SdfSolverConfig) -> SdfSolution:
-    """Levenberg-Marquardt from ``T_init [4, 4]`` float64 over ``levels`` (coarse first). Sync-free."""
+    """Levenberg-Marquardt from ``T_init [4, 4]`` float64 over ``levels`` (coarse first). Without a
+    ``converge_tol`` it never waits for the device; with one, once every ``check_every`` iterations."""
     dev = T_init.device
     T_best = T_init.to(torch.float64)
     eye = torch.eye(6, dtype=torch.float64, device=dev)
@@ -194,6 +204,7 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
     n_points = max(p.p_cam.shape[0] for p in levels)
     r = ok = None
     cost_best = torch.zeros((), dtype=torch.float64, device=dev)
+    iterations = 0
     for pts in levels:
         # the prior's weight is per point of the data term's mean, so it does not depend on N
         def evaluate(T: torch.Tensor, xi: torch.Tensor, pts: SdfPoints = pts) -> tuple[torch.Tensor, ...]:
@@ -205,10 +216,14 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
 
         cost_best, H_best, b_best, r, ok = evaluate(T_best, xi_acc)
         lam = torch.full((), cfg.lambda_init, dtype=torch.float64, device=dev)
-        for _ in range(cfg.iters):
+        for it in range(1, cfg.iters + 1):
             A = H_best + lam * (torch.diag(torch.diagonal(H_best)) + 1e-9 * eye)
             delta = solve_spd(A, -b_best)
             delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+            # converged: the next step would move the pose less than the tolerance (not worth an evaluation)
+            if cfg.converge_tol > 0 and (it - 1) % cfg.check_every == 0 \
+                    and float(delta.abs().max()) < cfg.converge_tol:
+                break
             T_c = perturb_right(T_best, delta)
             xi_c = xi_acc + delta
             cost_c, H_c, b_c, r_c, ok_c = evaluate(T_c, xi_c)
@@ -221,6 +236,7 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
             r = torch.where(better, r_c, r)
             ok = torch.where(better, ok_c, ok)
             lam = torch.where(better, (lam * 0.3).clamp(min=1e-7), lam * 5.0)
+            iterations += 1
     assert r is not None and ok is not None
     a = r.abs()
     inlier = (ok & (a < cfg.inlier_m)).to(torch.float64).mean()
@@ -228,4 +244,4 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
     n_valid = ok.sum()
     mid = ((n_valid - 1).clamp(min=0) // 2).reshape(1)
     med = torch.where(n_valid > 0, inside_abs.sort().values.gather(0, mid)[0], a.new_zeros(()))
-    return SdfSolution(T_best, cost_best, inlier, med, n_valid)
+    return SdfSolution(T_best, cost_best, inlier, med, n_valid, iterations)

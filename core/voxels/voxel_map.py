@@ -70,6 +70,8 @@ SURFACE_CELLS = 16
 1.25 cm cells in 0.2 m voxels, so a cell and its neighbours lie within 4.3 cm of the point that marked it)."""
 
 _SURFACE_BYTES = SURFACE_CELLS**3 // 8
+_FAR_CELL = float(1 << 40)
+"""A surface-cell coordinate no voxel reaches (the Morton range is ~2^20 voxels of 16 cells)."""
 
 
 @dataclass(frozen=True)
@@ -540,19 +542,22 @@ class VoxelMap:
         if not isinstance(points_world, torch.Tensor) or points_world.dim() != 2 or points_world.shape[1] != 3:
             raise ShapeError("points_world", tuple(getattr(points_world, "shape", ())), "[N, 3]")
         pts = points_world.to(self.device, torch.float64)
-        pts = pts[torch.isfinite(pts).all(dim=1)]
-        cells = torch.floor(pts / self.voxel_size_m * SURFACE_CELLS).to(torch.int64)  # global surface cells
+        # global surface cells; non-finite points land far outside the map (no voxel: dropped with the rest)
+        cells = torch.nan_to_num(torch.floor(pts * (SURFACE_CELLS / self.voxel_size_m)), nan=_FAR_CELL,
+                                 posinf=_FAR_CELL, neginf=_FAR_CELL).clamp(-_FAR_CELL, _FAR_CELL).to(torch.int64)
         ijk = torch.div(cells, SURFACE_CELLS, rounding_mode="floor")
         idx = self.lookup_allocated_cells(ijk)
-        keep = idx >= 0
-        if not bool(keep.any()):
-            return 0
-        local = cells[keep] - ijk[keep] * SURFACE_CELLS
+        local = cells - ijk * SURFACE_CELLS
         bit = (local[:, 0] * SURFACE_CELLS + local[:, 1]) * SURFACE_CELLS + local[:, 2]
-        # one int64 key per (voxel, cell): a 1-D unique (a sort) instead of a row-wise unique over [N, 3]
-        cell_key = torch.unique(idx[keep] * SURFACE_CELLS**3 + bit)
+        # one int64 key per (voxel, cell), -1 outside the map: a 1-D unique (one sort) instead of a row-wise
+        # unique over [N, 3], and no boolean indexing of [N, 3] arrays
+        cell_key = torch.unique(torch.where(idx >= 0, idx * SURFACE_CELLS**3 + bit, torch.full_like(idx, -1)))
+        cell_key = cell_key[int(cell_key[0] < 0):] if cell_key.numel() else cell_key
+        if cell_key.numel() == 0:
+            return 0
         bit = cell_key % 8
-        keys, inverse = torch.unique(cell_key // 8, return_inverse=True)
+        # sorted keys: consecutive duplicates only
+        keys, inverse = torch.unique_consecutive(cell_key // 8, return_inverse=True)
         # the cells are unique, so per byte the sum of distinct powers of two is their bitwise OR
         add = torch.zeros(len(keys), dtype=torch.int32, device=self.device)
         add.index_add_(0, inverse, (1 << (bit % 8)).to(torch.int32))

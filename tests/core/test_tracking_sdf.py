@@ -14,8 +14,8 @@ from voxfusion.core.slam_config import load_preset
 from voxfusion.core.tracking import Tracker, TrackingConfig, masked_median
 from voxfusion.core.tracking_sdf import SdfSolverConfig, linearize, sample_points
 
-TINY = ["device=cpu", "mapping.rays_per_frame=192", "mapping.iters=8", "mapping.first_frame_iters=40",
-        "field.sdf_hidden=64", "field.color_hidden=64"]
+TINY = ["device=cpu", "mapping.map_every=1", "mapping.rays_per_frame=192", "mapping.iters=8",
+        "mapping.first_frame_iters=40", "field.sdf_hidden=64", "field.color_hidden=64"]
 
 
 def pose_error(T_a, T_b):
@@ -91,11 +91,30 @@ def test_sdf_tracker_recovers_a_known_perturbation(room, use_color):
 def test_sdf_tracker_then_render_refinement(room):
     cap, cfg, mapper = room
     f = cap[7]
-    tr = tracker_for(cfg, mapper, method="sdf", refine_iters=5, rays=256)
+    tr = tracker_for(cfg, mapper, method="sdf", refine_iters=5, rays=256, sdf_converge_tol=0.0, check_every=1)
     res = tr.track(frame_to_device(f, "cpu"), perturb(f.T_world_cam))
     dt, da = pose_error(res.T_world_cam, f.T_world_cam)
     assert not res.lost and dt < 0.008 and da < 0.3, (dt, da)
-    assert res.iterations == 2 * 6 + 5  # sdf levels x iterations + the render refinement's
+    assert res.iterations == 2 * 6 + 5  # sdf levels x iterations (no early stop) + the render refinement's
+
+
+def test_sdf_tracker_stops_once_converged(room):
+    """With a convergence tolerance the levels end early, at a pose within a fraction of the tolerance's
+    scale of the one all iterations reach; the test is only read every check_every iterations."""
+    cap, cfg, mapper = room
+    f = cap[7]
+    data, prior = frame_to_device(f, "cpu"), perturb(f.T_world_cam)
+    full = tracker_for(cfg, mapper, method="sdf", sdf_iters=8, sdf_converge_tol=0.0).track(data, prior)
+    early = tracker_for(cfg, mapper, method="sdf", sdf_iters=8, sdf_converge_tol=1e-4, check_every=1).track(data, prior)
+    assert full.iterations == 16 and early.iterations < full.iterations
+    dt, da = pose_error(early.T_world_cam, full.T_world_cam)
+    assert dt < 1e-3 and da < 0.05, (dt, da)
+    assert pose_error(early.T_world_cam, f.T_world_cam)[0] < 0.008
+    # read back every 5th iteration: a level ends after 0 or 5 iterations (the test passed) or runs all 8
+    sparse = tracker_for(cfg, mapper, method="sdf", sdf_iters=8, sdf_converge_tol=1e-4,
+                         check_every=5).track(data, prior)
+    assert sparse.iterations in {a + b for a in (0, 5, 8) for b in (0, 5, 8)}, sparse.iterations
+    assert sparse.iterations >= early.iterations
 
 
 @pytest.mark.parametrize("method", ["sdf", "render"])
