@@ -73,7 +73,7 @@ def test_per_kind_sections_and_old_names():
     assert (iphone.mapping.map_every, iphone.tracking.iters, iphone.tracking.device_prior_weight) == (2, 10, 1000.0)
     assert (iphone.mapping.rays_per_frame, iphone.field.sdf_hidden) == (256, 64)
     tum = load_preset("tum+cpu")
-    assert tum.tracking.iters == 20  # the iphone section stays with iphone
+    assert (tum.mapping.map_every, tum.tracking.iters) == (1, 20)  # the iphone section stays with iphone
 
 
 def test_composition_errors_name_the_problem(tmp_path: Path):
