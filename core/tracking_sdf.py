@@ -16,8 +16,8 @@ points, moved into the world with the right pose, must sit on its zero level set
   carries no information there) get weight 0 and a constant cost, so leaving the map never pays;
 * 6x6 normal equations ``(H + lambda diag(H)) delta = -b`` solved on the device; a step is kept only if it
   lowers the cost, else ``lambda`` grows and the step is retried from the best pose. Accept / reject is a
-  ``torch.where`` on device tensors: the loop runs a fixed number of iterations and never waits for the
-  host (one read-back per frame, at the end);
+  ``torch.where`` on device tensors, so an iteration never waits for the host (apart from the optional
+  convergence test below, the only read-back is one per frame, at the end);
 * coarse to fine: ``levels`` rounds with 4x fewer points per coarser level;
 * a level ends after ``iters`` iterations, or earlier once the next proposed step would move less than
   ``converge_tol`` (metres and radians, largest component; that step is then not evaluated): the test is

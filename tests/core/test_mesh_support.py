@@ -30,6 +30,11 @@ def test_surface_mask_marks_cells_counts_and_survives_a_checkpoint():
     vmap.allocate(pts)
     assert vmap.add_surface_points(pts) == 3  # the first two share a 2.5 cm cell
     assert vmap.add_surface_points(pts) == 0
+    # non-finite points and points outside every voxel mark nothing, and leave the others alone
+    nonfinite = torch.tensor([[float("nan"), 0.0, 1.0], [float("inf"), 0.1, 1.0], [0.1, -float("inf"), 1.0],
+                              [5.0, 5.0, 5.0]])
+    assert vmap.add_surface_points(nonfinite) == 0
+    assert vmap.add_surface_points(pts[:0]) == 0
     cell = VOXEL_M / SURFACE_CELLS
     expected = {tuple(c) for c in np.floor(pts.numpy() / cell).astype(int).tolist()}
     assert {tuple(c) for c in vmap.surface_cells().tolist()} == expected

@@ -99,24 +99,25 @@ def test_transformed_and_sliced_captures_are_lazy():
         SlicedCapture(base, step=0)
 
 
-def test_timed_frames_counts_only_the_wait_for_each_frame():
+def test_timed_frames_counts_only_the_wait_for_each_frame(monkeypatch):
     """A run's processing time leaves frame loading out: TimedFrames adds up the time spent inside the
-    capture's iterator (here 3 x 20 ms of 'decoding'), not the consumer's (3 x 30 ms of 'engine')."""
-    import time
-
+    capture's iterator (here 3 x 20 ms of 'decoding'), not the consumer's (3 x 30 ms of 'engine'). The clock
+    is a counter the test advances, so the sums are exact."""
+    from voxfusion.core.datasets import frame as frame_module
     from voxfusion.core.datasets.frame import TimedFrames
+
+    clock = [100.0]
+    monkeypatch.setattr(frame_module.time, "perf_counter", lambda: clock[0])
 
     def slow_frames():
         for i in range(3):
-            time.sleep(0.02)
+            clock[0] += 0.02
             yield i
 
     frames = TimedFrames(slow_frames())
-    t0 = time.perf_counter()
     got = []
     for f in frames:
         got.append(f)
-        time.sleep(0.03)
-    wall = time.perf_counter() - t0
+        clock[0] += 0.03
     assert got == [0, 1, 2]
-    assert 0.06 <= frames.load_s < wall - 0.09 + 0.005
+    assert frames.load_s == pytest.approx(0.06, abs=1e-9)
