@@ -102,7 +102,10 @@ def sample_valid_pixels(frame: FrameData, n: int, generator: torch.Generator | N
     """
     if frame.n_valid == 0:
         raise ValidationError("depth_m", f"frame {frame.index} has no valid depth pixel to sample")
-    pick = torch.randint(0, frame.n_valid, (n,), generator=generator, device="cpu").to(frame.valid_idx.device)
+    # drawn where the generator lives: a generator on the frame's device (what the mapper and the tracker
+    # keep) makes no host-to-device copy per call; a CPU generator (or None) draws on the CPU as before
+    gdev = generator.device if generator is not None else torch.device("cpu")
+    pick = torch.randint(0, frame.n_valid, (n,), generator=generator, device=gdev).to(frame.valid_idx.device)
     return frame.valid_idx[pick]
 
 

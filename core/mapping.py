@@ -230,7 +230,9 @@ class Mapper:
         self.decoder = self.decoder.to(self.device)
         self.rebuild_optimizer()
         self.keyframes: list[Keyframe] = []
-        self.generator = torch.Generator().manual_seed(seed)
+        # on the map's device, so ray and sample jitter never cross from the host (one stream per device
+        # kind: a CUDA run draws other numbers than a CPU run with the same seed)
+        self.generator = torch.Generator(device=self.device).manual_seed(seed)
         self._rng = random.Random(seed)
         self._frames_since_keyframe = 0
         self._n_integrated = 0

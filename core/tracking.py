@@ -218,7 +218,9 @@ class Tracker:
         self.config = config
         self.render_config = render
         self.use_color = use_color
-        self.generator = torch.Generator().manual_seed(seed + 1)
+        self._seed = seed + 1
+        self.generator = torch.Generator().manual_seed(self._seed)
+        """Draws the tracked pixels; re-made on the map's device by :meth:`set_map` (no host copy per frame)."""
         self.voxels: VoxelMap | None = None
         self.decoder: SDFDecoder | None = None
         self._recent_losses: deque[float] = deque(maxlen=20)
@@ -226,6 +228,8 @@ class Tracker:
     def set_map(self, voxels: VoxelMap, decoder: SDFDecoder) -> None:
         """Swap in a new frozen map snapshot (a reference assignment; the tracker never waits)."""
         self.voxels, self.decoder = voxels, decoder
+        if self.generator.device != voxels.device:  # the first map, or a map moved to another device
+            self.generator = torch.Generator(device=voxels.device).manual_seed(self._seed)
 
     def track(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool = False) -> TrackResult:
         """Optimise the pose of ``frame`` starting from ``T_prior`` (``[4, 4]`` camera-to-world).
