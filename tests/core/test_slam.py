@@ -271,3 +271,24 @@ def test_map_snapshot_verbs_survive_a_checkpoint(capture, tmp_path):
     assert live.export("ply") == loaded.export("ply")
     with pytest.raises(ValidationError, match="format"):
         live.export("obj")
+
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_random_draws_live_on_the_maps_device_and_tracking_works_there(capture, device):
+    """The mapper's and the tracker's generators sit on the map's device (no host copy per draw on CUDA),
+    and a map built and tracked there still recovers a perturbed pose."""
+    cfg = load_preset("cpu-small", TINY + ["mapping.iters=8", f"device={device}"])
+    mapper = make_mapper(cfg)
+    assert mapper.generator.device.type == device
+    for f in capture.frames(0, 6):
+        mapper.integrate(frame_to_device(f, device), f.T_world_cam)
+    tracker = Tracker(TrackingConfig(method="sdf"), cfg.render, use_color=True)
+    tracker.set_map(mapper.voxels.snapshot(), mapper.decoder)
+    assert tracker.generator.device.type == device
+    f = capture[7]
+    res = tracker.track(frame_to_device(f, device), perturbed_prior(f))
+    dt, da = pose_error(res.T_world_cam, f.T_world_cam)
+    assert not res.lost and dt < 0.015 and da < 0.75, (dt, da)
