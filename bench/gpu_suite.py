@@ -19,6 +19,8 @@ Sections (every timed region sits between ``torch.cuda.synchronize()`` calls, af
 * ``render``: latency of a 256x192 depth image (:meth:`SlamSystem.render_depth`, AR occlusion) of the
   synthetic session's final map; ``mesh``: :meth:`SlamSystem.mesh` time and size.
 * ``memory``: peak ``torch.cuda.max_memory_allocated`` (and RSS) of each section.
+* ``accel``: the decoder's execution options (``torch.compile``, bfloat16 / float16 mixed precision) against
+  the float32 eager reference, per tracking and mapping iteration (:mod:`bench.bench_accel`): which to keep.
 * ``capacity``: how many concurrent realtime sessions the GPU holds at 30 Hz tracking: 1, 2, 4, ... sessions
   (one process each, as the server runs them; ``--capacity-isolation thread`` for one process), each fed
   30 Hz for ``--capacity-seconds``; a session *holds* 30 Hz when it tracks at least 97 % of that
@@ -54,6 +56,7 @@ if str(REPO_ROOT) not in sys.path:
 
 import torch  # noqa: E402
 
+from bench import bench_accel  # noqa: E402
 from bench.machine import PeakMemory, machine_info  # noqa: E402
 from voxfusion.core.config import apply_overrides  # noqa: E402
 from voxfusion.core.datasets import open_capture  # noqa: E402
@@ -433,6 +436,9 @@ def run_suite(args: argparse.Namespace) -> dict:
                 results["render_mesh"] = _section("render_mesh", memory,
                                                   lambda s=slam, fr=fr: measure_render_and_mesh(s, fr, sizes))
             slam.close()
+    if "accel" not in args.skip:
+        results["accel"] = _section("accel", memory, lambda: bench_accel.run(
+            device, args.smoke, 3 if args.smoke else 31, 1 if args.smoke else 5, 2 if args.smoke else 7))
     if "capacity" not in args.skip:
         # 30 distinct frames per session (played back and forth): every worker renders its own before it starts
         spec = dataclasses.replace(synth, seconds=args.capacity_seconds or sizes.capacity_s,
@@ -459,6 +465,9 @@ def _print_tables(results: dict) -> None:
         rows += [{"what": f"render {rm['render_wh'][0]}x{rm['render_wh'][1]} depth [ms] (median)",
                   "value": rm["render_ms_median"]},
                  {"what": f"mesh extraction [ms] ({rm['mesh_faces']} faces)", "value": rm["mesh_ms"]}]
+    for name, r in results.get("accel", {}).get("variants", {}).items():
+        rows.append({"what": f"decoder {name}: mapping / tracking speed-up vs float32 eager",
+                     "value": f"{r['mapping_speedup']:.2f}x / {r['tracking_speedup']:.2f}x"})
     if "capacity" in results:
         c = results["capacity"]
         rows.append({"what": f"sessions held at {c['feed_hz']:g} Hz ({c['isolation']} per session)",
@@ -475,7 +484,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iter-preset", default="paper", help="preset of the iterations section (default paper)")
     ap.add_argument("--set", action="append", default=[], help="override for every config, e.g. tracking.rays=512")
     ap.add_argument("--skip", nargs="*", default=[], choices=["iterations", "realtime", "sevenscenes", "render",
-                                                              "capacity"])
+                                                              "accel", "capacity"])
     ap.add_argument("--capacity-max", type=int, default=64, help="most concurrent sessions tried")
     ap.add_argument("--capacity-seconds", type=float, default=None, help="feeding per round (default 10 s)")
     ap.add_argument("--capacity-budget-s", type=float, default=900.0, help="no new round after this many seconds")

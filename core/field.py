@@ -16,9 +16,14 @@ Example:
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
+import threading
+import typing
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from torch import nn
@@ -38,6 +43,11 @@ __all__ = [
     "trilinear_weights",
     "query",
 ]
+
+log = logging.getLogger("voxfusion.field")
+
+Precision = Literal["float32", "bfloat16", "float16"]
+"""Arithmetic of the decoder MLP (:attr:`FieldConfig.precision`)."""
 
 SDFField = Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]]
 """``field(points_world [K, 3] float, voxel_idx [K] int64) -> (sdf_m [K], rgb [K, 3] in [0, 1] or None)``."""
@@ -67,12 +77,23 @@ class FieldConfig:
     sdf_scale_m: float = 0.1
     """The decoder's raw scalar is multiplied by this to give metres (Vox-Fusion's raw output is in
     truncation units, 0.1 m); it only conditions optimisation, the API is always metres."""
+    precision: Precision = "float32"
+    """Arithmetic of the decoder MLP's layers: ``float32`` (the reference) or mixed precision, ``bfloat16``
+    / ``float16`` under :func:`torch.autocast` (matrix products in that type, accumulated in float32). Only
+    the MLP: embeddings, interpolation, the renderer, the losses and the decoder's outputs stay float32.
+    Pays on CUDA and on CPUs with native bf16 matrix units (AMX); ``bench/bench_accel.py`` measures it."""
+    compile: bool = False
+    """Run the decoder MLP through :func:`torch.compile` (dynamic shapes: the number of points varies).
+    Where compilation fails (no C++ compiler, an unsupported platform) the decoder logs one warning and
+    stays eager; the results are the same either way (tested)."""
 
     def __post_init__(self) -> None:
         for name in ("embed_dim", "sdf_hidden", "sdf_layers", "geo_feature_dim", "color_hidden",
                      "color_layers"):
             if getattr(self, name) < 1:
                 raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
+        if self.precision not in typing.get_args(Precision):
+            raise ConfigError("precision", f"must be one of {typing.get_args(Precision)}, got {self.precision!r}")
         if self.local_coord_freqs < 0:
             raise ConfigError("local_coord_freqs", f"must be >= 0, got {self.local_coord_freqs}")
         if not (math.isfinite(self.sdf_scale_m) and self.sdf_scale_m > 0):
@@ -137,11 +158,58 @@ class SDFDecoder(nn.Module):
         if features.dim() != 2 or features.shape[1] != self.config.embed_dim:
             raise ShapeError("features", tuple(features.shape), f"[K, {self.config.embed_dim}]")
         x = self.encode_input(features, local_xyz)
-        out = self.sdf_net(x)
-        sdf_m = out[:, 0] * self.config.sdf_scale_m
-        if self.color_net is None or not with_color:
-            return sdf_m, None
-        return sdf_m, self.color_net(torch.cat([out[:, 1:], x], -1))
+        color_net = self.color_net if with_color else None
+        mlp = _compiled_mlp() if self.config.compile else None
+        with _precision_context(x.device.type, self.config.precision):
+            if mlp is not None:
+                try:
+                    sdf_raw, rgb = mlp(self.sdf_net, color_net, x)
+                except Exception as e:  # noqa: BLE001 - a compiler failure: warn once, stay eager
+                    _compile_failed(e)
+                    sdf_raw, rgb = _mlp(self.sdf_net, color_net, x)
+            else:
+                sdf_raw, rgb = _mlp(self.sdf_net, color_net, x)
+        return sdf_raw.float() * self.config.sdf_scale_m, None if rgb is None else rgb.float()
+
+
+def _mlp(sdf_net: nn.Module, color_net: nn.Module | None, x: torch.Tensor
+         ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The decoder's layers on its input ``x [K, input_dim]``: raw SDF ``[K]`` (truncation units) and RGB
+    ``[K, 3]`` (None without ``color_net``). A free function over the modules, so one compiled version
+    serves every decoder instance (snapshots are copies)."""
+    out = sdf_net(x)
+    rgb = color_net(torch.cat([out[:, 1:], x], -1)) if color_net is not None else None
+    return out[:, 0], rgb
+
+
+def _precision_context(device_type: str, precision: str) -> contextlib.AbstractContextManager:
+    """Autocast to ``precision`` on ``device_type`` (nothing for float32, the reference)."""
+    if precision == "float32":
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=device_type, dtype=getattr(torch, precision))
+
+
+_COMPILE_LOCK = threading.Lock()
+_COMPILE: dict[str, Callable | None | bool] = {"fn": None, "failed": False}
+
+
+def _compiled_mlp() -> Callable | None:
+    """The compiled :func:`_mlp` (built on first use), or None once compilation has failed."""
+    with _COMPILE_LOCK:
+        if _COMPILE["failed"]:
+            return None
+        if _COMPILE["fn"] is None:
+            _COMPILE["fn"] = torch.compile(_mlp, dynamic=True)
+        return _COMPILE["fn"]  # type: ignore[return-value]
+
+
+def _compile_failed(error: Exception) -> None:
+    """Fall back to the eager decoder for the rest of the process, with one warning naming the cause."""
+    with _COMPILE_LOCK:
+        if not _COMPILE["failed"]:
+            log.warning("field.compile: torch.compile failed (%s: %s); the decoder runs eager",
+                        type(error).__name__, str(error).splitlines()[0] if str(error) else "")
+        _COMPILE["failed"] = True
 
 
 def local_coords(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor) -> torch.Tensor:

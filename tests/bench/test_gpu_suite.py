@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from bench import gpu_suite
+from bench import bench_accel, gpu_suite
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 
 
@@ -30,7 +30,14 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path):
     assert result["render_mesh"]["render_ms_median"] > 0 and result["render_mesh"]["mesh_ms"] > 0
     cap = result["capacity"]
     assert cap["isolation"] == "thread" and 1 <= len(cap["rows"]) <= 2 and cap["rows"][0]["sessions"] == 1
-    assert set(result["memory"]) == {"iterations", "realtime/synthetic", "render_mesh", "capacity"}
+    assert set(result["memory"]) == {"iterations", "realtime/synthetic", "render_mesh", "accel", "capacity"}
+    # the decoder's execution options, each measured against the float32 eager reference on the same map
+    accel = result["accel"]["variants"]
+    assert set(accel) == set(bench_accel.VARIANTS)
+    assert all(r["mapping_ms_per_iter"] > 0 and r["tracking_ms_per_frame"] > 0 for r in accel.values())
+    assert accel["float32 eager (reference)"]["sdf_dev_mm"] == 0.0
+    assert accel["compile"]["sdf_dev_mm"] < 1e-3  # the same arithmetic, compiled
+    assert 0.0 < accel["bfloat16"]["sdf_dev_mm"] < 2.0  # rounding, but within the 1 mm-scale of the field
 
 
 def test_capacity_worker_waits_for_go_and_reports_one_session():

@@ -1,0 +1,202 @@
+"""The decoder's execution options, measured: eager float32 (the reference) against ``torch.compile`` and
+mixed precision (``field.compile``, ``field.precision``), per tracking and per mapping iteration.
+
+Usage (from the repository root)::
+
+    python bench/bench_accel.py                 # this machine's device -> bench/results/accel-<device>.json
+    python bench/bench_accel.py --smoke --out /tmp/accel.json     # tiny sizes, seconds (the tests run this)
+
+For each variant a map is built from the synthetic room's first ``--map-frames`` frames at their reference
+poses (320x240 with the preset ``voxfusion run`` picks on a CPU, ``synthetic+cpu``; 640x480 with the ``paper``
+preset on CUDA, where the GPU targets are stated), then:
+
+* ``build_s``: that build, first compilation included (``torch.compile`` compiles on first use, and again
+  for each new input kind: with and without colour, with and without gradients);
+* ``mapping_ms_per_iter``: median over ``--rounds`` of :meth:`Mapper.optimize` (``--iters`` iterations), after
+  a warm-up round;
+* ``tracking_ms_per_frame`` / ``tracking_ms_per_eval``: the geometric (``sdf``) tracker on the next frame from
+  its previous frame's pose, median over ``--rounds`` (an evaluation is one field query + backward pass);
+  ``tracking_error_mm`` / ``tracking_error_deg``: that pose against the reference pose;
+* ``sdf_dev_mm``: the largest SDF difference, at points near the surface, between this variant and the same
+  map decoded by the float32 eager reference (0 for the reference itself): what the option alone changes.
+
+Timed regions are closed by ``torch.cuda.synchronize()`` on CUDA. Keep the variant that wins where it runs:
+the engine defaults stay float32 eager until a measurement on that device says otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import time
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from bench.machine import machine_info  # noqa: E402
+from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
+from voxfusion.core.eval.report import format_table, write_json  # noqa: E402
+from voxfusion.core.framedata import frame_to_device  # noqa: E402
+from voxfusion.core.mapping import make_mapper  # noqa: E402
+from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for  # noqa: E402
+from voxfusion.core.tracking import Tracker  # noqa: E402
+
+VARIANTS: dict[str, dict[str, object]] = {
+    "float32 eager (reference)": {},
+    "bfloat16": {"precision": "bfloat16"},
+    "float16": {"precision": "float16"},
+    "compile": {"compile": True},
+    "compile + bfloat16": {"compile": True, "precision": "bfloat16"},
+}
+"""Variant name -> :class:`~voxfusion.core.field.FieldConfig` options."""
+SMOKE = ["mapping.first_frame_iters=5", "mapping.iters=1", "mapping.rays_per_frame=64", "tracking.sdf_points=256",
+         "tracking.sdf_iters=2", "field.sdf_hidden=16", "field.color_hidden=16", "field.geo_feature_dim=8"]
+"""``--smoke`` overrides: the same code at tiny sizes."""
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _median_ms(fn, rounds: int, device: torch.device) -> float:  # noqa: ANN001
+    times = []
+    for _ in range(rounds):
+        _sync(device)
+        t = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append((time.perf_counter() - t) * 1e3)
+    return statistics.median(times)
+
+
+def _pose_error(T: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
+    """Translation (mm) and rotation (degrees) of ``T_ref^-1 T``."""
+    E = np.linalg.inv(T_ref) @ T
+    angle = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1) / 2, -1.0, 1.0)))
+    return float(np.linalg.norm(E[:3, 3]) * 1e3), float(angle)
+
+
+def measure_variant(base: VoxFusionConfig, options: dict[str, object], frames: list, map_frames: int,
+                    iters: int, rounds: int) -> dict:
+    """Build a map with the decoder options ``options``, then time mapping and tracking on it."""
+    config = dataclasses.replace(base, field=dataclasses.replace(base.field, **options))
+    device = torch.device(config.device)
+    t0 = time.perf_counter()
+    mapper = make_mapper(config, device=device)
+    for f in frames[:map_frames]:
+        mapper.integrate(frame_to_device(f, device), f.T_world_cam)
+    mapper.optimize(iters, newest=mapper.keyframes[-1])  # warm-up (and first compilation) of a full round
+    _sync(device)
+    build_s = time.perf_counter() - t0
+    mapping_ms = _median_ms(lambda: mapper.optimize(iters, newest=mapper.keyframes[-1]), rounds, device) / iters
+
+    tracker = Tracker(config.tracking, config.render, mapper.field_config.use_color, seed=config.seed)
+    snapshot = mapper.voxels.snapshot()
+    tracker.set_map(snapshot, mapper.decoder)
+    target = frames[map_frames]
+    data = frame_to_device(target, device)
+    prior = frames[map_frames - 1].T_world_cam
+    result = tracker.track(data, prior)  # warm-up
+    evals = result.iterations + config.tracking.sdf_levels
+    tracking_ms = _median_ms(lambda: tracker.track(data, prior), rounds, device)
+    err_mm, err_deg = _pose_error(np.asarray(tracker.track(data, prior).T_world_cam), target.T_world_cam)
+
+    # what the option alone changes: the same map decoded by the float32 eager reference
+    pts = _surface_points(data, target.T_world_cam, 4096, device)
+    with torch.no_grad():
+        sdf, _, valid = mapper.query(pts)
+        reference = dataclasses.replace(mapper.decoder.config, precision="float32", compile=False)
+        mapper.decoder.config, fast_config = reference, mapper.decoder.config
+        sdf_ref, _, _ = mapper.query(pts)
+        mapper.decoder.config = fast_config
+    dev_mm = float((sdf - sdf_ref)[valid].abs().max()) * 1e3 if bool(valid.any()) else float("nan")
+    return {"options": options, "build_s": build_s, "mapping_ms_per_iter": mapping_ms,
+            "tracking_ms_per_frame": tracking_ms, "tracking_ms_per_eval": tracking_ms / max(evals, 1),
+            "tracking_evals": evals, "tracking_error_mm": err_mm, "tracking_error_deg": err_deg,
+            "sdf_dev_mm": dev_mm}
+
+
+def _surface_points(data, T_world_cam: np.ndarray, n: int, device: torch.device) -> torch.Tensor:  # noqa: ANN001
+    """``[n, 3]`` world points on the frame's observed surface (every k-th valid pixel)."""
+    depth = data.depth_m
+    v, u = torch.nonzero(depth > 0, as_tuple=True)
+    step = max(1, v.numel() // n)
+    v, u = v[::step][:n], u[::step][:n]
+    z = depth[v, u].to(torch.float64)
+    K = data.K.to(torch.float64)
+    p = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
+    T = torch.as_tensor(T_world_cam, dtype=torch.float64, device=p.device)
+    return (p @ T[:3, :3].T + T[:3, 3]).to(device, torch.float32)
+
+
+def run(device: str, smoke: bool, map_frames: int, iters: int, rounds: int,
+        variants: list[str] | None = None) -> dict:
+    """Every variant (``variants``: a subset of :data:`VARIANTS` names) on ``device``; the JSON-ready result."""
+    dev = torch.device(device)
+    cuda = dev.type == "cuda"
+    width, height = (640, 480) if cuda and not smoke else (320, 240)
+    overrides = [f"device={device}", *(SMOKE if smoke else [])]
+    cap = SyntheticCapture(SyntheticConfig(n_frames=map_frames + 1, width=width, height=height, seed=0))
+    # the paper preset on CUDA (the GPU targets are stated there); on a CPU what `voxfusion run` picks
+    preset = "paper" if cuda and not smoke else preset_for(cap, "cpu").preset
+    base = load_preset(preset, overrides, profile=cap.profile)
+    frames = list(cap.frames(0, map_frames + 1))
+    rows = {}
+    for name in variants or list(VARIANTS):
+        print(f"[accel] {name}", flush=True)
+        rows[name] = measure_variant(base, VARIANTS[name], frames, map_frames, iters, rounds)
+    ref = rows.get("float32 eager (reference)")
+    if ref:
+        for r in rows.values():
+            r["mapping_speedup"] = ref["mapping_ms_per_iter"] / r["mapping_ms_per_iter"]
+            r["tracking_speedup"] = ref["tracking_ms_per_frame"] / r["tracking_ms_per_frame"]
+    return {"device": str(dev), "preset": preset, "size": [width, height], "map_frames": map_frames,
+            "mapping_iters_per_round": iters, "rounds": rounds, "smoke": smoke, "variants": rows}
+
+
+def print_table(result: dict) -> None:
+    rows = [{"variant": name, "map ms/it": r["mapping_ms_per_iter"], "x map": r.get("mapping_speedup"),
+             "track ms/frame": r["tracking_ms_per_frame"], "x track": r.get("tracking_speedup"),
+             "track err mm": r["tracking_error_mm"], "sdf dev mm": r["sdf_dev_mm"], "build s": r["build_s"]}
+            for name, r in result["variants"].items()]
+    print(format_table(rows, columns=list(rows[0]), float_fmt=".2f"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--smoke", action="store_true", help="tiny sizes (seconds): the same code paths")
+    p.add_argument("--map-frames", type=int, default=None,
+                   help="frames mapped before timing (default 31: four keyframes, a full window; smoke 3)")
+    p.add_argument("--iters", type=int, default=5, help="mapping iterations per timed round")
+    p.add_argument("--rounds", type=int, default=None, help="timed rounds (median; default 7, smoke 2)")
+    p.add_argument("--variants", nargs="*", choices=list(VARIANTS), default=None)
+    p.add_argument("--out", type=Path, default=None,
+                   help="JSON path (default bench/results/accel-<device>.json; smoke: not written unless given)")
+    args = p.parse_args(argv)
+    map_frames = args.map_frames or (3 if args.smoke else 31)
+    rounds = args.rounds or (2 if args.smoke else 7)
+    result = run(args.device, args.smoke, map_frames, 1 if args.smoke else args.iters, rounds, args.variants)
+    print_table(result)
+    machine = machine_info()
+    out = args.out
+    if out is None and not args.smoke:
+        cuda = machine.get("cuda_device") if args.device.startswith("cuda") else None
+        slug = "".join(c if c.isalnum() else "-" for c in (cuda["name"] if cuda else "cpu").lower()).strip("-")
+        out = REPO_ROOT / "bench" / "results" / f"accel-{slug}.json"
+    if out is not None:
+        write_json(out, {"machine": machine, "command": " ".join(sys.argv), **result})
+        print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
