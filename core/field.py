@@ -81,7 +81,8 @@ class FieldConfig:
     """Arithmetic of the decoder MLP's layers: ``float32`` (the reference) or mixed precision, ``bfloat16``
     / ``float16`` under :func:`torch.autocast` (matrix products in that type, accumulated in float32). Only
     the MLP: embeddings, interpolation, the renderer, the losses and the decoder's outputs stay float32.
-    Pays on CUDA and on CPUs with native bf16 matrix units (AMX); ``bench/bench_accel.py`` measures it."""
+    Pays on CUDA and on CPUs with native bf16 matrix units (AMX); ``bench/bench_accel.py`` measures it.
+    There is no loss scaling, so float16 gradients can underflow: prefer bfloat16 where the device has it."""
     compile: bool = False
     """Run the decoder MLP through :func:`torch.compile` (dynamic shapes: the number of points varies).
     Where compilation fails (no C++ compiler, an unsupported platform) the decoder logs one warning and
