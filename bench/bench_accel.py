@@ -44,6 +44,7 @@ from bench.machine import machine_info  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.eval.report import format_table, write_json  # noqa: E402
 from voxfusion.core.framedata import frame_to_device  # noqa: E402
+from voxfusion.core.geometry import backproject_depth  # noqa: E402
 from voxfusion.core.mapping import make_mapper  # noqa: E402
 from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for  # noqa: E402
 from voxfusion.core.tracking import Tracker  # noqa: E402
@@ -125,16 +126,9 @@ def measure_variant(base: VoxFusionConfig, options: dict[str, object], frames: l
 
 
 def _surface_points(data, T_world_cam: np.ndarray, n: int, device: torch.device) -> torch.Tensor:  # noqa: ANN001
-    """``[n, 3]`` world points on the frame's observed surface (every k-th valid pixel)."""
-    depth = data.depth_m
-    v, u = torch.nonzero(depth > 0, as_tuple=True)
-    step = max(1, v.numel() // n)
-    v, u = v[::step][:n], u[::step][:n]
-    z = depth[v, u].to(torch.float64)
-    K = data.K.to(torch.float64)
-    p = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
-    T = torch.as_tensor(T_world_cam, dtype=torch.float64, device=p.device)
-    return (p @ T[:3, :3].T + T[:3, 3]).to(device, torch.float32)
+    """``[<= n, 3]`` world points on the frame's observed surface (every k-th valid pixel)."""
+    pts = backproject_depth(data.depth_m.cpu().numpy(), data.K.cpu().numpy(), np.asarray(T_world_cam))
+    return torch.from_numpy(pts[::max(1, len(pts) // n)][:n]).to(device, torch.float32)
 
 
 def run(device: str, smoke: bool, map_frames: int, iters: int, rounds: int,

@@ -160,16 +160,8 @@ class SDFDecoder(nn.Module):
             raise ShapeError("features", tuple(features.shape), f"[K, {self.config.embed_dim}]")
         x = self.encode_input(features, local_xyz)
         color_net = self.color_net if with_color else None
-        mlp = _compiled_mlp() if self.config.compile else None
         with _precision_context(x.device.type, self.config.precision):
-            if mlp is not None:
-                try:
-                    sdf_raw, rgb = mlp(self.sdf_net, color_net, x)
-                except Exception as e:  # noqa: BLE001 - a compiler failure: warn once, stay eager
-                    _compile_failed(e)
-                    sdf_raw, rgb = _mlp(self.sdf_net, color_net, x)
-            else:
-                sdf_raw, rgb = _mlp(self.sdf_net, color_net, x)
+            sdf_raw, rgb = _run_mlp(self.sdf_net, color_net, x, self.config.compile)
         return sdf_raw.float() * self.config.sdf_scale_m, None if rgb is None else rgb.float()
 
 
@@ -181,6 +173,18 @@ def _mlp(sdf_net: nn.Module, color_net: nn.Module | None, x: torch.Tensor
     out = sdf_net(x)
     rgb = color_net(torch.cat([out[:, 1:], x], -1)) if color_net is not None else None
     return out[:, 0], rgb
+
+
+def _run_mlp(sdf_net: nn.Module, color_net: nn.Module | None, x: torch.Tensor, compiled: bool
+             ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`_mlp`, compiled when asked and compilation works (a failure: one warning, then eager)."""
+    mlp = _compiled_mlp() if compiled else None
+    if mlp is not None:
+        try:
+            return mlp(sdf_net, color_net, x)
+        except Exception as e:  # noqa: BLE001 - a compiler failure: warn once, stay eager
+            _compile_failed(e)
+    return _mlp(sdf_net, color_net, x)
 
 
 def _precision_context(device_type: str, precision: str) -> contextlib.AbstractContextManager:

@@ -229,7 +229,7 @@ def test_compile_failure_leaves_one_warning_and_the_eager_decoder(monkeypatch, c
     # a real compiler failure: inductor is pointed at a C++ compiler that does not exist
     monkeypatch.setattr(inductor_config.cpp, "cxx", ("/nonexistent/voxfusion-c++",))
     monkeypatch.setattr(field, "_COMPILE", {"fn": None, "failed": False})
-    monkeypatch.setenv("TORCHINDUCTOR_FORCE_DISABLE_CACHES", "1")
+    monkeypatch.setattr(inductor_config, "force_disable_caches", True)  # no cached artefact stands in for it
     torch._dynamo.reset()
     ref, fast = _decoder_pair(sdf_layers=3, compile=True)  # a graph no earlier test compiled
     feats = torch.randn(64, 16, generator=torch.Generator().manual_seed(4))
