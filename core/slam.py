@@ -327,6 +327,7 @@ class SlamSystem:
         if not rec.lost:
             self._good_tail.append(rec)
             self._first_good = self._first_good or rec
+            self.tracker.remember(data, rec.T_tracked)
         if self.on_pose is not None:
             self.on_pose(rec)
         return rec

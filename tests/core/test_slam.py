@@ -151,8 +151,11 @@ def test_lost_frame_is_flagged_and_not_fused(capture):
     mapped_before = slam.stats().frames_mapped
     # a frame whose depth points into empty space far from the map: no ray hits the map
     bad = capture[3].with_(depth_m=np.full_like(capture[3].depth_m, 0.0))
+    ref_before = slam.tracker._reference  # the frame-to-frame term's reference: the last accepted frame
+    np.testing.assert_allclose(ref_before.T_ref_world.numpy(), np.linalg.inv(slam.records[2].T_tracked), atol=1e-9)
     rec = slam.process(bad)
     assert rec.lost
+    assert slam.tracker._reference is ref_before  # a lost frame is never the next frame's reference
     assert slam.mapper.voxels.n_voxels == voxels_before
     assert slam.stats().frames_mapped == mapped_before
     # the system recovers on the next good frame

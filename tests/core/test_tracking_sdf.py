@@ -7,12 +7,12 @@ import torch
 
 from voxfusion.core.datasets import open_capture
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
-from voxfusion.core.framedata import frame_to_device
+from voxfusion.core.framedata import FrameData, frame_to_device
 from voxfusion.core.lie import perturb_right, se3_exp
 from voxfusion.core.reconstruct import make_mapper
 from voxfusion.core.slam_config import load_preset
 from voxfusion.core.tracking import Tracker, TrackingConfig, masked_median
-from voxfusion.core.tracking_sdf import SdfSolverConfig, linearize, sample_points
+from voxfusion.core.tracking_sdf import SdfSolverConfig, depth_reference, frame_residuals, linearize, sample_points
 
 TINY = ["device=cpu", "mapping.map_every=1", "mapping.rays_per_frame=192", "mapping.iters=8",
         "mapping.first_frame_iters=40", "field.sdf_hidden=64", "field.color_hidden=64"]
@@ -71,6 +71,88 @@ def test_normal_equations_match_autograd_jacobian(room):
     torch.testing.assert_close(r[ok].to(torch.float64), r_ref, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(H, J.T @ J / n, rtol=2e-3, atol=1e-5)
     torch.testing.assert_close(b, J.T @ r_ref / n, rtol=2e-3, atol=1e-6)
+
+
+def plane_frame(h=48, w=64, normal=(0.3, -0.2, -1.0), dist=2.0):
+    """A depth image of the plane ``n . X = -dist`` (unit ``n`` facing the camera), its ``n`` and ``K``."""
+    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+    K = np.array([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]])
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    z = -dist / (rays @ n)
+    data = FrameData(0, 0.0, torch.as_tensor(z, dtype=torch.float32), None, torch.as_tensor(K),
+                     torch.arange(h * w))
+    return data, n, K
+
+
+def test_frame_residuals_on_a_tilted_plane():
+    """Against a plane's own depth: normals equal the plane's, a point moved by d along the normal has residual
+    d, and the world gradient is the (world) normal, whatever the reference's pose."""
+    data, n, K = plane_frame()
+    T_ref = perturb(np.eye(4), 2.0)  # any pose: the residual is measured in the reference camera
+    ref = depth_reference(data, torch.as_tensor(T_ref))
+    gen = torch.Generator().manual_seed(0)
+    idx = torch.randint(0, data.depth_m.numel(), (500,), generator=gen)
+    z = data.depth_m.reshape(-1)[idx].to(torch.float64)
+    u, v = (idx % data.width).to(torch.float64), (idx // data.width).to(torch.float64)
+    on_plane = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
+    d = torch.linspace(-0.03, 0.03, 500, dtype=torch.float64)
+    p_cam = (on_plane + d[:, None] * torch.as_tensor(n)).to(torch.float32)  # in the reference camera
+    r, g_world, ok = frame_residuals(ref, p_cam, torch.as_tensor(T_ref), max_dist_m=0.05)
+    assert int(ok.sum()) > 400  # all but the points projected off the image or onto its 2-pixel border
+    torch.testing.assert_close(r[ok].to(torch.float64), d[ok], atol=2e-4, rtol=0)
+    n_world = torch.as_tensor(T_ref[:3, :3] @ n, dtype=torch.float32)
+    torch.testing.assert_close(g_world[ok], n_world.expand(int(ok.sum()), 3), atol=1e-3, rtol=0)
+    # pairs further apart than max_dist_m are not associated
+    assert not frame_residuals(ref, p_cam, torch.as_tensor(T_ref), max_dist_m=0.01)[2][d.abs() > 0.012].any()
+
+
+def test_frame_term_normal_equations_match_autograd_jacobian(room):
+    """With a reference frame, H and b add the frame-to-frame term's J^T W J and J^T W r, J from autograd of
+    the point-to-plane residuals (the association is held fixed: it is not differentiated)."""
+    cap, cfg, mapper = room
+    f, f_ref = cap[7], cap[6]
+    data = frame_to_device(f, "cpu")
+    ref = depth_reference(frame_to_device(f_ref, "cpu"), torch.as_tensor(f_ref.T_world_cam))
+    pts = sample_points(data, 256, torch.Generator().manual_seed(0))
+    T = torch.as_tensor(perturb(f.T_world_cam, 0.1))
+    w = 2.0
+    plain = SdfSolverConfig(huber_m=1.0, max_residual_m=0.08)
+    both = SdfSolverConfig(huber_m=1.0, max_residual_m=0.08, w_frame=w, frame_max_m=0.05)
+    _, H0, b0, _, _ = linearize(mapper.voxels, mapper.decoder, pts, T, plain)
+    _, H1, b1, _, _ = linearize(mapper.voxels, mapper.decoder, pts, T, both, ref)
+    _, _, ok = frame_residuals(ref, pts.p_cam, T, 0.05)
+    assert int(ok.sum()) > 100
+
+    def residuals(xi):
+        return w * frame_residuals(ref, pts.p_cam.to(torch.float64), perturb_right(T, xi), 0.05)[0][ok]
+
+    J = torch.autograd.functional.jacobian(residuals, torch.zeros(6, dtype=torch.float64))
+    r = residuals(torch.zeros(6, dtype=torch.float64))
+    n = pts.p_cam.shape[0]
+    torch.testing.assert_close(H1 - H0, J.T @ J / n, rtol=2e-3, atol=1e-5)
+    torch.testing.assert_close(b1 - b0, J.T @ r / n, rtol=2e-3, atol=1e-6)
+
+
+def test_frame_term_sharpens_tracking_on_a_coarse_map():
+    """A map given 5 optimisation rounds is too blurred to place a frame well; the previous frame's depth
+    (``remember``) is not. Same frame, prior and sampled points, with and without the term."""
+    cap = SyntheticCapture(SyntheticConfig(n_frames=8, width=96, height=72, seed=5))
+    cfg = load_preset("cpu-small", ["device=cpu", "mapping.first_frame_iters=5", "field.sdf_hidden=64",
+                                    "field.color_hidden=64"])
+    mapper = make_mapper(cfg)
+    mapper.integrate(frame_to_device(cap[0], "cpu"), cap[0].T_world_cam)
+    f, prev = cap[2], cap[1]
+    errors = {}
+    for w in (0.0, 2.0):
+        tr = Tracker(TrackingConfig(method="sdf", sdf_w_frame=w), cfg.render, use_color=False)
+        tr.set_map(mapper.voxels.snapshot(), mapper.decoder)
+        tr.remember(frame_to_device(prev, "cpu"), prev.T_world_cam)
+        assert (tr._reference is None) == (w == 0)  # nothing is kept without the term
+        res = tr.track(frame_to_device(f, "cpu"), perturb(f.T_world_cam, 0.3))
+        errors[w] = pose_error(res.T_world_cam, f.T_world_cam)
+    assert errors[2.0][0] < 0.004 and errors[2.0][1] < 0.2, errors
+    assert errors[2.0][0] < 0.5 * errors[0.0][0], errors
 
 
 @pytest.mark.parametrize("use_color", [False, True])
