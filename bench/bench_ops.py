@@ -98,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         tcfg = TrackingConfig(**kw)
         tracker = Tracker(tcfg, cfg.render, use_color=True)
         tracker.set_map(mapper.voxels.snapshot(), mapper.decoder)
+        if hasattr(tracker, "remember"):  # the previous frame: the frame-to-frame term's reference (sdf)
+            tracker.remember(frame_to_device(cap[9], "cpu"), cap[9].T_world_cam)
         res = tracker.track(frame, prior)
         # the sdf tracker evaluates each level once more than it iterates (the starting point)
         per_call = res.iterations + (tcfg.sdf_levels if kw.get("method") == "sdf" else 0)

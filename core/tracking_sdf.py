@@ -119,6 +119,9 @@ class DepthReference:
     K: torch.Tensor
     T_ref_world: torch.Tensor
     baseline_px: int
+    offsets: torch.Tensor
+    """``[5]`` int64 flat offsets in ``depth_padded`` of a pixel and its right, left, lower and upper neighbours
+    ``baseline_px`` away (made once, on the depth's device)."""
 
     @property
     def height(self) -> int:
@@ -139,7 +142,9 @@ def depth_reference(frame: FrameData, T_world_cam: torch.Tensor, baseline_px: in
     T_ref_world[:3, 3] = -(T[:3, :3].T @ T[:3, 3])
     b = baseline_px
     padded = torch.nn.functional.pad(frame.depth_m.to(torch.float32), (b, b, b, b))
-    return DepthReference(padded, frame.K.to(torch.float32), T_ref_world, b)
+    wp = padded.shape[1]
+    offsets = torch.tensor([0, b, -b, b * wp, -b * wp], dtype=torch.int64, device=padded.device)
+    return DepthReference(padded, frame.K.to(torch.float32), T_ref_world, b, offsets)
 
 
 def frame_residuals(ref: DepthReference, p_cam: torch.Tensor, T: torch.Tensor, max_dist_m: float,
@@ -166,8 +171,7 @@ def frame_residuals(ref: DepthReference, p_cam: torch.Tensor, T: torch.Tensor, m
     u, v = u.clamp(0, w - 1), v.clamp(0, h - 1)
     wp = w + 2 * k
     centre = ((v + k) * wp + (u + k)).to(torch.int64)
-    offsets = torch.tensor([0, k, -k, k * wp, -k * wp], device=centre.device)
-    z0, zr, zl, zd, zu = ref.depth_padded.reshape(-1)[centre[:, None] + offsets].unbind(1)
+    z0, zr, zl, zd, zu = ref.depth_padded.reshape(-1)[centre[:, None] + ref.offsets].unbind(1)
     # the reference vertex at (u, v) and the central differences to its neighbours, back-projected:
     # X(u, v, d) = ((u - cx) d / fx, (v - cy) d / fy, d)
     a, c = (u - cx) / fx, (v - cy) / fy
@@ -274,11 +278,8 @@ def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Te
     n = r.shape[0]
     m = len(blocks)
     res, g_world, valid = (torch.cat([blk[i] for blk in blocks]) for i in (0, 1, 4))
-    if m == 1:
-        k, cap = cfg.huber_m, torch.full_like(res, cfg.max_residual_m, dtype=torch.float64)
-    else:  # per residual [m N]
-        k, cap = torch.tensor([[blk[2], blk[3]] for blk in blocks], dtype=torch.float64).to(
-            res.device).repeat_interleave(n, 0).unbind(1)
+    # per residual [m N]: fills on the device (no host-to-device copy per call)
+    k, cap = (torch.cat([res.new_full((n,), blk[i], dtype=torch.float64) for blk in blocks]) for i in (2, 3))
     p_all = p_cam.repeat(m, 1) if m > 1 else p_cam
     # everything in units of the SDF noise scale: residual / huber_m
     scale = 1.0 / cfg.huber_m
