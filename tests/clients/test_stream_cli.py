@@ -181,7 +181,8 @@ def test_an_iphone_capture_gets_the_iphone_preset_at_the_servers_sizes(server, s
     want = config_to_dict(load_preset("iphone+cpu", TINY, profile=open_capture(capture).profile))  # as `run` would
     for key in ("field", "mapping", "tracking", "render", "loss", "sized_for", "voxel_size_m"):
         assert row.config[key] == want[key], key
-    assert row.config["tracking"]["method"] == "render" and row.config["mapping"]["map_every"] == 2
+    # the iphone kind's own choices reached the server (ARKit prior weight, a mapping round every 2nd frame)
+    assert row.config["tracking"]["device_prior_weight"] == 1000.0 and row.config["mapping"]["map_every"] == 2
 
 
 def test_an_explicit_preset_wins(server, tmp_path):
