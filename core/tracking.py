@@ -253,8 +253,7 @@ class Tracker:
         term (``sdf_w_frame``; nothing is kept without it). The caller passes every frame it accepts (tracked
         and not lost, or the first)."""
         if self.config.method == "sdf" and self.config.sdf_w_frame > 0:
-            T = torch.as_tensor(np.asarray(T_world_cam), dtype=torch.float64, device=frame.depth_m.device)
-            self._reference = depth_reference(frame, T)
+            self._reference = depth_reference(frame, T_world_cam)
 
     def track(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool = False) -> TrackResult:
         """Optimise the pose of ``frame`` starting from ``T_prior`` (``[4, 4]`` camera-to-world).

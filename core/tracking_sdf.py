@@ -37,10 +37,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from .field import SDFDecoder, interpolate_unchecked, local_coords
 from .framedata import FrameData, sample_valid_pixels
+from .geometry import invert_pose
 from .lie import perturb_right
 from .voxels import VoxelMap
 
@@ -132,14 +134,13 @@ class DepthReference:
         return int(self.depth_padded.shape[1]) - 2 * self.baseline_px
 
 
-def depth_reference(frame: FrameData, T_world_cam: torch.Tensor, baseline_px: int = 2) -> DepthReference:
-    """``frame`` tracked at ``T_world_cam [4, 4]`` as a :class:`DepthReference`. Its normals will come from
-    central differences ``baseline_px`` pixels either side: 2 tilts them less with sensor noise than direct
-    neighbours (TUM fr1 desk, seed 2: ATE 0.32 cm with 1, 0.22 with 2)."""
-    T = T_world_cam.to(torch.float64)
-    T_ref_world = torch.eye(4, dtype=torch.float64, device=T.device)  # the rigid inverse, no solver
-    T_ref_world[:3, :3] = T[:3, :3].T
-    T_ref_world[:3, 3] = -(T[:3, :3].T @ T[:3, 3])
+def depth_reference(frame: FrameData, T_world_cam: np.ndarray, baseline_px: int = 2) -> DepthReference:
+    """``frame`` tracked at ``T_world_cam [4, 4]`` (a host array, as tracking returns poses) as a
+    :class:`DepthReference`. Its normals will come from central differences ``baseline_px`` pixels either
+    side: 2 tilts them less with sensor noise than direct neighbours (TUM fr1 desk, seed 2: ATE 0.32 cm with
+    1, 0.22 with 2)."""
+    T_ref_world = torch.as_tensor(invert_pose(np.asarray(T_world_cam, dtype=np.float64)),
+                                  device=frame.depth_m.device)
     b = baseline_px
     padded = torch.nn.functional.pad(frame.depth_m.to(torch.float32), (b, b, b, b))
     wp = padded.shape[1]

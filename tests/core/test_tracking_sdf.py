@@ -90,7 +90,7 @@ def test_frame_residuals_on_a_tilted_plane():
     d, and the world gradient is the (world) normal, whatever the reference's pose."""
     data, n, K = plane_frame()
     T_ref = perturb(np.eye(4), 2.0)  # any pose: the residual is measured in the reference camera
-    ref = depth_reference(data, torch.as_tensor(T_ref))
+    ref = depth_reference(data, T_ref)
     gen = torch.Generator().manual_seed(0)
     idx = torch.randint(0, data.depth_m.numel(), (500,), generator=gen)
     z = data.depth_m.reshape(-1)[idx].to(torch.float64)
@@ -113,7 +113,7 @@ def test_frame_term_normal_equations_match_autograd_jacobian(room):
     cap, cfg, mapper = room
     f, f_ref = cap[7], cap[6]
     data = frame_to_device(f, "cpu")
-    ref = depth_reference(frame_to_device(f_ref, "cpu"), torch.as_tensor(f_ref.T_world_cam))
+    ref = depth_reference(frame_to_device(f_ref, "cpu"), f_ref.T_world_cam)
     pts = sample_points(data, 256, torch.Generator().manual_seed(0))
     T = torch.as_tensor(perturb(f.T_world_cam, 0.1))
     w = 2.0
