@@ -96,6 +96,12 @@ class MappingConfig:
     free_range_voxels: float = 2.0
     """``band`` sampler: free space covered in front of the band, in voxel edges (allocated voxels sit
     around observed surfaces, so farther samples would mostly fall outside the map)."""
+    band_samples: int | None = None
+    """``band`` sampler: samples per ray inside the truncation band ``|D - t| <= tr``, one per stratum, jittered
+    every iteration. None: the renderer's spacing (``ceil(2 tr / (render.step_ratio * voxel))``, 10 for the
+    paper's 0.1 m band and 2 cm step). A mapping iteration costs about what its samples cost, and jittered
+    strata cover the band over the iterations, so the CPU preset uses fewer (``configs/cpu.yaml``); depth
+    rendering for tracking, occlusion and evaluation keeps the renderer's step."""
 
     def __post_init__(self) -> None:
         for name in ("rays_per_frame", "iters", "keyframe_max_interval", "map_every", "alloc_stride"):
@@ -110,6 +116,8 @@ class MappingConfig:
             raise ConfigError("sampler", f"must be 'band' or 'voxels', got {self.sampler!r}")
         if self.free_samples < 0 or not self.free_range_voxels >= 0:
             raise ConfigError("free_samples", "free_samples and free_range_voxels must be >= 0")
+        if self.band_samples is not None and self.band_samples < 1:
+            raise ConfigError("band_samples", f"must be >= 1 or None (the renderer's spacing), got {self.band_samples}")
 
 
 @dataclass
@@ -354,7 +362,7 @@ class Mapper:
         if self.config.sampler == "band":
             out = render_band(self.voxels, self.decoder, o, d, depth_gt, self.render_config,
                               self.config.free_samples, self.config.free_range_voxels * self.voxels.voxel_size_m,
-                              training=True, generator=self.generator)
+                              training=True, generator=self.generator, n_band=self.config.band_samples)
         else:
             t_far = depth_gt + self.render_config.truncation_m
             out = render_rays(self.voxels, self.decoder, o, d, self.render_config, training=True,

@@ -345,17 +345,19 @@ def band_samples(depth: torch.Tensor, dir_norm: torch.Tensor, n_band: int, n_fre
 
 def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torch.Tensor, dirs: torch.Tensor,
                 depth: torch.Tensor, config: RenderConfig, n_free: int, free_range_m: float,
-                training: bool = True, generator: torch.Generator | None = None) -> RenderOutput:
+                training: bool = True, generator: torch.Generator | None = None,
+                n_band: int | None = None) -> RenderOutput:
     """Render rays of known depth from a fixed number of samples per ray (:func:`band_samples`): the
     mapping renderer. Same compositing and outputs as :func:`render_rays`, but every shape is fixed by
-    ``N`` and the config (``n_band = ceil(2 tr / step)`` keeps :func:`render_rays`' sample spacing in the
-    band) and nothing waits for the host: samples outside allocated voxels are evaluated at a clamped
+    ``N`` and the config (``n_band``, default ``ceil(2 tr / step)``, keeps :func:`render_rays`' sample spacing
+    in the band) and nothing waits for the host: samples outside allocated voxels are evaluated at a clamped
     voxel index and masked, not compacted, so a step can be captured (CUDA graphs, ``torch.compile``).
 
     Args:
         field: an :class:`~.field.SDFDecoder` over ``voxel_map`` or any :data:`~.field.SDFField`.
         depth: ``[N]`` observed depth in t-units (> 0 for every ray).
         n_free, free_range_m: free-space strata and the metres in front of the band they cover.
+        n_band: strata inside the band (None: the renderer's step, ``config.step_ratio``).
     """
     if origins.dim() != 2 or origins.shape[1] != 3:
         raise ShapeError("origins", tuple(origins.shape), "[N, 3]")
@@ -365,8 +367,9 @@ def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torc
     origins = origins.to(voxel_map.device, dtype)
     dirs = dirs.to(voxel_map.device, dtype)
     dn = dirs.detach().norm(dim=-1)
-    step = config.step_ratio * voxel_map.voxel_size_m
-    n_band = max(1, math.ceil(2 * config.truncation_m / step - 1e-9))
+    if n_band is None:
+        step = config.step_ratio * voxel_map.voxel_size_m
+        n_band = max(1, math.ceil(2 * config.truncation_m / step - 1e-9))
     t = band_samples(depth.to(voxel_map.device, dtype), dn, n_band, n_free, config.truncation_m, free_range_m,
                      training, generator).detach()
     pts = origins[:, None, :] + dirs[:, None, :] * t[:, :, None]  # [N, S, 3]

@@ -131,13 +131,16 @@ def _map_with_points_inside(embed_dim: int, n_allocated: int, n_points: int, see
     return vm, pts, idx, torch.randn(pts.shape[0], embed_dim, generator=g)
 
 
-def test_fused_interpolation_matches_the_reference_in_values_and_gradients():
+@pytest.mark.parametrize("n_points", [3000, 40])
+def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_points: int):
     """The fast path (embedding_bag forward, hand-written backward) against the plain gather-and-sum:
     features, and gradients to both the embeddings and the points (the trackers differentiate through the
-    trilinear weights)."""
+    trilinear weights). 3000 points outnumber the voxels (the table gradient accumulates per voxel first),
+    40 do not (one accumulation over the corner rows)."""
     from voxfusion.core.field import interpolate_reference, interpolate_unchecked
 
-    vm, pts, idx, out_grad = _map_with_points_inside(16, 400, 3000, seed=1)
+    vm, pts, idx, out_grad = _map_with_points_inside(16, 400, n_points, seed=1)
+    assert (pts.shape[0] > vm.n_voxels) == (n_points == 3000)
     results = []
     for fn in (interpolate_unchecked, interpolate_reference):
         x = pts.clone().requires_grad_(True)

@@ -177,3 +177,14 @@ def test_the_papers_voxel_sampler_still_maps_accurately(tiny_run):
     m = compute_mesh_metrics(run.mesh, cap.gt_mesh, MeshEvalConfig(n_samples=20000),
                              views=views_from_frames(list(cap.frames())))
     assert m.accuracy_m < 0.03 and m.completion_m < 0.03 and m.completion_ratio > 0.9, m
+
+
+def test_band_samples_is_validated_and_defaults_to_the_renderers_spacing():
+    """``mapping.band_samples``: None (the built-in default) keeps the renderer's 2 cm spacing; the CPU sizes set
+    5; anything below 1 is a typed error naming the key."""
+    from voxfusion.core.errors import ConfigError
+
+    assert load_preset("default", ["device=cpu"]).mapping.band_samples is None
+    assert load_preset("cpu", []).mapping.band_samples == 5
+    with pytest.raises(ConfigError, match="band_samples"):
+        load_preset("cpu", ["mapping.band_samples=0"])
