@@ -20,6 +20,8 @@ __all__ = [
     "morton_encode",
     "morton_decode",
     "morton_encode_planar",
+    "unique_bounded",
+    "unique_codes",
     "check_coord_range",
     "find_sorted",
     "merge_sorted",
@@ -99,6 +101,40 @@ def morton_encode_planar(ijk_planar: torch.Tensor) -> torch.Tensor:
     """
     u = ijk_planar + MORTON_OFFSET
     return _spread_bits(u[0]) | (_spread_bits(u[1]) << 1) | (_spread_bits(u[2]) << 2)
+
+
+def unique_bounded(values: torch.Tensor, bound: int, max_dense: int = 1 << 24) -> torch.Tensor:
+    """Sorted distinct entries of the int64 ``values`` that lie in ``[0, bound)`` (the others, e.g. -1 for
+    "none", are dropped): ``u = torch.unique(values); u[(u >= 0) & (u < bound)]``, the reference it falls back
+    to when ``bound > max_dense``. Otherwise the entries are marked in a dense occupancy array of ``bound``
+    flags and read back in order: linear in ``N`` instead of a sort of all ``N`` values."""
+    if bound > max_dense:
+        u = torch.unique(values)
+        return u[(u >= 0) & (u < bound)]
+    ok = (values >= 0) & (values < bound)
+    occupied = torch.zeros(bound + 1, dtype=torch.bool, device=values.device)  # the last flag: out of range
+    occupied[torch.where(ok, values, torch.full_like(values, bound))] = True
+    return torch.nonzero(occupied[:bound]).squeeze(1)
+
+
+def unique_codes(ijk: torch.Tensor, max_dense_cells: int = 1 << 22) -> torch.Tensor:
+    """Sorted distinct Morton codes of integer lattice coordinates ``[N, 3]`` (in range; see
+    :func:`morton_encode`): what ``torch.unique(morton_encode(ijk))`` returns, the reference.
+
+    When the points' bounding box has at most ``max_dense_cells`` cells (a depth frame's points at 0.2 m
+    voxels: ~10^4-10^6), the occupied cells of the box are found with :func:`unique_bounded` and only they
+    are encoded and sorted (274k points of a 640x480 7-Scenes frame: 11.9 -> 2.3 ms on a 2-core CPU);
+    otherwise (a box too large, e.g. centimetre voxels) the reference. Waits for the device once (the box)."""
+    if ijk.shape[0] == 0:
+        return torch.unique(morton_encode(ijk))
+    lo = ijk.min(0).values
+    ex, ey, ez = (int(e) for e in (ijk.max(0).values - lo + 1).tolist())
+    if ex * ey * ez > max_dense_cells:
+        return torch.unique(morton_encode(ijk))
+    rel = ijk - lo
+    cells = unique_bounded((rel[:, 0] * ey + rel[:, 1]) * ez + rel[:, 2], ex * ey * ez, max_dense_cells)
+    cells_ijk = torch.stack([cells // (ey * ez), (cells // ez) % ey, cells % ez], -1) + lo
+    return torch.sort(morton_encode(cells_ijk)).values
 
 
 def morton_decode(codes: torch.Tensor) -> torch.Tensor:

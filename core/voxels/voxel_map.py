@@ -53,6 +53,8 @@ from .morton import (
     merge_sorted,
     morton_decode,
     morton_encode,
+    unique_bounded,
+    unique_codes,
 )
 
 __all__ = ["MemoryReport", "VoxelMap"]
@@ -327,7 +329,7 @@ class VoxelMap:
         ijk = self.points_to_voxel_coords(points_world)
         # the voxel's far corner must stay encodable too
         check_coord_range(ijk, field, MORTON_MIN_COORD, MORTON_MAX_COORD - 1)
-        codes = torch.unique(morton_encode(ijk))  # sorted ascending
+        codes = unique_codes(ijk)  # sorted ascending
         return codes, morton_decode(codes)
 
     def lookup_voxels(self, points_world: torch.Tensor) -> torch.Tensor:
@@ -549,10 +551,10 @@ class VoxelMap:
         idx = self.lookup_allocated_cells(ijk)
         local = cells - ijk * SURFACE_CELLS
         bit = (local[:, 0] * SURFACE_CELLS + local[:, 1]) * SURFACE_CELLS + local[:, 2]
-        # one int64 key per (voxel, cell), -1 outside the map: a 1-D unique (one sort) instead of a row-wise
-        # unique over [N, 3], and no boolean indexing of [N, 3] arrays
-        cell_key = torch.unique(torch.where(idx >= 0, idx * SURFACE_CELLS**3 + bit, torch.full_like(idx, -1)))
-        cell_key = cell_key[int(cell_key[0] < 0):] if cell_key.numel() else cell_key
+        # one int64 key per (voxel, cell), -1 outside the map: a 1-D unique (dense flags over the map's cells, no
+        # sort of N) instead of a row-wise unique over [N, 3], and no boolean indexing of [N, 3] arrays
+        cell_key = unique_bounded(torch.where(idx >= 0, idx * SURFACE_CELLS**3 + bit, torch.full_like(idx, -1)),
+                                  self.n_voxels * SURFACE_CELLS**3)
         if cell_key.numel() == 0:
             return 0
         bit = cell_key % 8

@@ -75,6 +75,26 @@ def _random_points(n: int, seed: int, scale: float = 3.0) -> torch.Tensor:
     return (torch.rand(n, 3, generator=g) - 0.5) * 2 * scale
 
 
+@pytest.mark.parametrize("spread", [3, 40, 100_000])
+def test_unique_codes_and_bounded_unique_match_torch_unique(spread: int):
+    """The dense-occupancy uniques (allocation, surface cells) against ``torch.unique``: coordinates either
+    side of zero in a small box, a frame-sized box, and a box too large for flags (the fallback); the
+    bounded unique drops entries outside ``[0, bound)`` such as the -1 "no voxel" keys, on both paths."""
+    from voxfusion.core.voxels.morton import morton_encode, unique_bounded, unique_codes
+
+    g = torch.Generator().manual_seed(spread)
+    ijk = torch.randint(-spread, spread, (5000, 3), generator=g)
+    ijk[::7] = ijk[3]  # many duplicates
+    torch.testing.assert_close(unique_codes(ijk), torch.unique(morton_encode(ijk)), rtol=0, atol=0)
+    assert unique_codes(ijk[:0]).numel() == 0
+    values = torch.randint(-3, 500, (4000,), generator=g)
+    ref = torch.unique(values)
+    ref = ref[(ref >= 0) & (ref < 400)]
+    for max_dense in (1 << 24, 10):  # flags, and the torch.unique fallback
+        torch.testing.assert_close(unique_bounded(values, 400, max_dense), ref, rtol=0, atol=0)
+    assert unique_bounded(torch.full((5,), -1), 10).numel() == 0
+
+
 def test_allocation_is_complete_deduplicated_and_idempotent():
     vm = VoxelMap(voxel_size_m=0.2, seed=0)
     pts = _random_points(2000, 0)
