@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         # iterations of the very calls that are counted (a converging tracker runs a different number per
         # call: each draws other points), averaged like the counts
         iterations: list[int] = []
-        c = count_ops(lambda t=tracker: iterations.append(t.track(frame, prior).iterations), args.repeats)
+        c = count_ops(lambda t=tracker, log=iterations: log.append(t.track(frame, prior).iterations), args.repeats)
         its = sum(iterations[-args.repeats:]) / args.repeats
         # the sdf tracker evaluates each level once more than it iterates (the starting point)
         per_call = its + (tcfg.sdf_levels if kw.get("method") == "sdf" else 0)
