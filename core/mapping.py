@@ -88,7 +88,7 @@ class MappingConfig:
     sampler: str = "band"
     """Where a mapping ray's samples go. ``band``: a fixed number per ray around its observed depth
     (:func:`~.render.render_band`: ``free_samples`` strata over the ``free_range_voxels`` voxel edges in
-    front of the truncation band, the band itself at the renderer's step) - fixed shapes, no host
+    front of the truncation band, the band itself in ``band_samples`` strata) - fixed shapes, no host
     synchronisation. ``voxels``: the paper's sampler, every ``step`` along the allocated voxels the ray
     crosses up to the depth plus the truncation (:func:`~.render.render_rays`), the reference."""
     free_samples: int = 6

@@ -456,18 +456,23 @@ def test_band_samples_are_sorted_strata_in_front_of_and_inside_the_band():
     torch.testing.assert_close(mid[0, 6:], 2.0 - tr + (torch.arange(10, dtype=torch.float64) + 0.5) * 0.02)
 
 
+def _analytic_band_scenes():
+    """The band renderer's analytic scenes: ``(cfg, fn, voxel_map, origins, dirs, exact_depth)`` for the
+    fronto-parallel and the tilted plane 2 m away, seen by a 32x24 camera at the identity pose."""
+    cfg = RenderConfig(step_ratio=0.05, max_distance_m=5.0)
+    o, d = camera_rays(K_TEST, torch.eye(4), width=32, height=24, dtype=torch.float64)
+    for fn in (plane_sdf, tilted_plane_sdf):
+        normal = _TILT_N if fn is tilted_plane_sdf else torch.tensor([0.0, 0.0, -1.0]).double()
+        yield cfg, fn, _band_map(fn, 0.2, 1.0, 0.35), o, d, (2.0 * normal[2]) / (d @ normal)
+
+
 def test_band_renderer_matches_the_voxel_renderer_on_analytic_surfaces():
     """The fixed-shape mapping renderer against the reference (``render_rays``) where depth is known: at the
     strata midpoints the same surfaces within a millimetre of each other and of the exact depth; jittered
     (training) within a millimetre on average."""
     from voxfusion.core.render import render_band
 
-    cfg = RenderConfig(step_ratio=0.05, max_distance_m=5.0)
-    o, d = camera_rays(K_TEST, torch.eye(4), width=32, height=24, dtype=torch.float64)
-    for fn in (plane_sdf, tilted_plane_sdf):
-        vm = _band_map(fn, 0.2, 1.0, 0.35)
-        normal = _TILT_N if fn is tilted_plane_sdf else torch.tensor([0.0, 0.0, -1.0]).double()
-        exact = (2.0 * normal[2]) / (d @ normal)
+    for cfg, fn, vm, o, d, exact in _analytic_band_scenes():
         ref = render_rays(vm, fn, o, d, cfg)
         for training in (False, True):
             out = render_band(vm, fn, o, d, exact, cfg, n_free=6, free_range_m=0.4, training=training,
@@ -488,12 +493,7 @@ def test_band_renderer_with_fewer_band_strata_stays_unbiased():
     per ray (centimetres) but unbiased over the rays."""
     from voxfusion.core.render import render_band
 
-    cfg = RenderConfig(step_ratio=0.05, max_distance_m=5.0)
-    o, d = camera_rays(K_TEST, torch.eye(4), width=32, height=24, dtype=torch.float64)
-    for fn in (plane_sdf, tilted_plane_sdf):
-        vm = _band_map(fn, 0.2, 1.0, 0.35)
-        normal = _TILT_N if fn is tilted_plane_sdf else torch.tensor([0.0, 0.0, -1.0]).double()
-        exact = (2.0 * normal[2]) / (d @ normal)
+    for cfg, fn, vm, o, d, exact in _analytic_band_scenes():
         for training in (False, True):
             out = render_band(vm, fn, o, d, exact, cfg, n_free=4, free_range_m=0.4, training=training,
                               generator=torch.Generator().manual_seed(0), n_band=5)
