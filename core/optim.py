@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-__all__ = ["adam"]
+__all__ = ["adam", "preload"]
 
 
 def adam(params: Iterable[Any], lr: float) -> torch.optim.Adam:
@@ -24,3 +24,10 @@ def adam(params: Iterable[Any], lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=lr, fused=True)
     except (RuntimeError, ValueError, TypeError):
         return torch.optim.Adam(params, lr=lr)
+
+
+def preload() -> None:
+    """Import what ``torch.optim.Adam``'s constructor imports on its first call (``torch._dynamo``: ~0.7 s on a
+    2-core CPU), so an engine built before its frames arrive (:class:`~.slam.SlamSystem`) does not add it to
+    its first frame's latency. Not done at this module's import: commands that never optimise stay quick."""
+    import torch._dynamo  # noqa: F401

@@ -37,6 +37,7 @@ from .voxels import VoxelMap
 __all__ = [
     "RenderConfig",
     "camera_rays",
+    "camera_directions",
     "VoxelHits",
     "intersect_voxels",
     "intersect_voxels_reference",
@@ -108,6 +109,17 @@ def _as_tensor(x: torch.Tensor | np.ndarray, field: str, shape: tuple[int, ...],
     return t if device is None else t.to(device)
 
 
+def camera_directions(K: torch.Tensor, pixels_uv: torch.Tensor) -> torch.Tensor:
+    """Camera-frame ray directions ``[N, 3]`` float64 through pixels ``[N, 2]`` ``(u, v)`` of intrinsics
+    ``K [3, 3]``: ``((u - cx) / fx, (v - cy) / fy, 1)`` (z component 1, so ``t`` along the ray is camera depth;
+    :func:`camera_rays` turns them into the world)."""
+    Kt = K.to(pixels_uv.device, torch.float64)
+    uv = pixels_uv.to(torch.float64)
+    x = (uv[:, 0] - Kt[0, 2]) / Kt[0, 0]
+    y = (uv[:, 1] - Kt[1, 2]) / Kt[1, 1]
+    return torch.stack([x, y, torch.ones_like(x)], -1)
+
+
 def camera_rays(K: torch.Tensor | np.ndarray, T_world_cam: torch.Tensor | np.ndarray,
                 pixels_uv: torch.Tensor | None = None, width: int | None = None, height: int | None = None,
                 dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
@@ -137,9 +149,7 @@ def camera_rays(K: torch.Tensor | np.ndarray, T_world_cam: torch.Tensor | np.nda
         if pixels_uv.dim() != 2 or pixels_uv.shape[1] != 2:
             raise ShapeError("pixels_uv", tuple(pixels_uv.shape), "[N, 2]")
         uv = pixels_uv.to(T.device, torch.float64)
-    x = (uv[:, 0] - Kt[0, 2]) / Kt[0, 0]
-    y = (uv[:, 1] - Kt[1, 2]) / Kt[1, 1]
-    d_cam = torch.stack([x, y, torch.ones_like(x)], -1).to(T.dtype)
+    d_cam = camera_directions(Kt, uv).to(T.dtype)
     dirs = d_cam @ T[:3, :3].transpose(0, 1)
     origins = T[:3, 3].expand_as(dirs)
     return origins.to(dtype), dirs.to(dtype)

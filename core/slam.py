@@ -44,6 +44,7 @@ from .geometry import invert_pose, nearest_rigid
 from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper
 from .mesh import extract_map_mesh
 from .mesh.frame import WorldAxes, camera_up_forward
+from .optim import preload as preload_optimizer
 from .render import RenderConfig, RenderedImage, render_depth_image
 from .slam_config import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
@@ -177,6 +178,7 @@ class SlamSystem:
                  on_pose: Callable[[FrameRecord], None] | None = None) -> None:
         self.config = config
         self.device = resolve_device(config.device)
+        preload_optimizer()  # the map and its optimisers are built with the first frame
         self._use_color = use_color
         self.on_pose = on_pose
         self.mapper: Mapper | None = None

@@ -47,6 +47,8 @@ class VoxelIndexGrid:
     level: int
     table: torch.Tensor
     n_occupied: int
+    border: int = 0
+    """Empty cells on every side of the occupied box (>= 1: :meth:`lookup` clamps onto them)."""
 
     @property
     def strides(self) -> tuple[int, int, int]:
@@ -78,7 +80,19 @@ class VoxelIndexGrid:
         return flat, inside
 
     def lookup(self, cells: torch.Tensor) -> torch.Tensor:
-        """Value of each cell ``[..., 3]`` (int64) -> ``[...]`` int64, -1 outside the grid or where empty."""
+        """Value of each cell ``[..., 3]`` (int64) -> ``[...]`` int64, -1 outside the grid or where empty.
+
+        With a border, a cell outside the table is clamped onto the table's outer layer, which is all empty:
+        no inside test and no select (half the operations of :meth:`flat_index`'s path, which serves
+        border-less grids)."""
+        if cells.shape[-1:] != (3,):
+            raise ShapeError("cells", tuple(cells.shape), "[..., 3]")
+        if self.border >= 1:
+            x, y, z = cells.unbind(-1)
+            (ox, oy, oz), (nx, ny, nz) = self.origin_xyz, self.shape
+            sx, sy, _ = self.strides
+            flat = (x - ox).clamp(0, nx - 1) * sx + (y - oy).clamp(0, ny - 1) * sy + (z - oz).clamp(0, nz - 1)
+            return self.table[flat].to(torch.int64)
         flat, inside = self.flat_index(cells)
         val = self.table[flat].to(torch.int64)
         return torch.where(inside, val, torch.full_like(val, -1))
@@ -115,4 +129,4 @@ def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: in
     # block is occupied (0) when any of its voxels is, whatever the order of the inactive (-1) ones
     table.scatter_reduce_(0, rel[:, 0] * sx + rel[:, 1] * sy + rel[:, 2], values.to(torch.int32), "amax")
     return VoxelIndexGrid(origin=lo, origin_xyz=tuple(int(c) for c in lo.tolist()), size=size, shape=shape,
-                          level=level, table=table, n_occupied=int((table >= 0).sum()))
+                          level=level, table=table, n_occupied=int((table >= 0).sum()), border=border)

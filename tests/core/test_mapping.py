@@ -143,6 +143,49 @@ def test_window_with_a_colourless_frame_keeps_the_colour_term_of_the_others():
     assert float(m.step(window[1:]).color.detach()) == 0  # no frame with colour: no colour term
 
 
+def test_window_rays_match_each_keyframes_own_rays_and_pose_gradients():
+    """The batched window rays against the plain per-keyframe path (:meth:`Keyframe.pose` +
+    :func:`camera_rays`): same rays, same gradients for the deltas, none for a fixed keyframe or without
+    ``train_poses``."""
+    from voxfusion.core.framedata import sample_pixels
+    from voxfusion.core.mapping import Keyframe, window_rays
+    from voxfusion.core.render import camera_rays
+
+    frames = list(SyntheticCapture(SyntheticConfig(n_frames=3, width=48, height=36)).frames())
+    window = [Keyframe.create(frame_to_device(f, "cpu"), torch.as_tensor(f.T_world_cam), fixed=i == 0)
+              for i, f in enumerate(frames)]
+    for i, kf in enumerate(window):  # non-zero corrections, different per keyframe
+        kf.delta.data = torch.tensor([0.01, -0.02, 0.03, 0.02, -0.01, 0.015], dtype=torch.float64) * (i + 1)
+    n = 17
+    o, d, depth, colours = window_rays(window, n, torch.Generator().manual_seed(3), train_poses=True)
+    gen = torch.Generator().manual_seed(3)
+    ref = []
+    for kf in window:
+        px = sample_pixels(kf.data, n, gen)
+        ref.append((camera_rays(kf.data.K, kf.pose() if not kf.fixed else kf.T_world_cam, px.uv), px))
+    torch.testing.assert_close(o, torch.cat([r[0][0] for r in ref]), rtol=0, atol=1e-6)
+    torch.testing.assert_close(d, torch.cat([r[0][1] for r in ref]), rtol=0, atol=1e-6)
+    torch.testing.assert_close(depth, torch.cat([r[1].depth_m for r in ref]))
+    assert all(torch.equal(c, r[1].color) for c, r in zip(colours, ref, strict=True))
+    # the same loss through both paths: the same delta gradients (the fixed keyframe gets none)
+    t = torch.linspace(0.5, 2.0, o.shape[0], dtype=torch.float32)
+    weights = torch.tensor([0.3, -0.7, 1.1])
+
+    def loss(origins, dirs):
+        return ((origins + dirs * t[:, None]) * weights).sum()
+
+    grads = torch.autograd.grad(loss(o, d), [kf.delta for kf in window[1:]])
+    o_ref, d_ref = (torch.cat([r[0][j] for r in ref]) for j in (0, 1))
+    grads_ref = torch.autograd.grad(loss(o_ref, d_ref), [kf.delta for kf in window[1:]])
+    for g, g_ref in zip(grads, grads_ref, strict=True):
+        assert g.abs().max() > 0
+        torch.testing.assert_close(g, g_ref, rtol=1e-5, atol=1e-6)
+    o, d, _, _ = window_rays(window, n, torch.Generator().manual_seed(3), train_poses=True)
+    assert torch.autograd.grad(loss(o, d), [window[0].delta], allow_unused=True)[0] is None  # fixed
+    o, d, _, _ = window_rays(window, n, torch.Generator().manual_seed(3), train_poses=False)
+    assert not o.requires_grad and not d.requires_grad
+
+
 def test_window_colours_mask_rays_without_colour():
     from voxfusion.core.mapping import _window_colors
 

@@ -295,3 +295,19 @@ def test_random_draws_live_on_the_maps_device_and_tracking_works_there(capture, 
     res = tracker.track(frame_to_device(f, device), perturbed_prior(f))
     dt, da = pose_error(res.T_world_cam, f.T_world_cam)
     assert not res.lost and dt < 0.015 and da < 0.75, (dt, da)
+
+
+def test_building_the_engine_imports_what_the_first_frames_optimisers_need():
+    """``torch.optim.Adam`` imports ``torch._dynamo`` on first use (~0.7 s on 2 cores): the engine does it when
+    it is built, not inside its first frame. A fresh interpreter, since this one may have imported it already."""
+    import subprocess
+    import sys
+
+    code = ("import sys\n"
+            "from voxfusion.core.slam import SlamSystem\n"
+            "from voxfusion.core.slam_config import load_preset\n"
+            "assert 'torch._dynamo' not in sys.modules, 'imported before the engine was built'\n"
+            "SlamSystem(load_preset('cpu'))\n"
+            "assert 'torch._dynamo' in sys.modules\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr

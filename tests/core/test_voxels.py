@@ -181,6 +181,25 @@ def _query_points(seed: int, centre: tuple[float, float, float], scale: float) -
     return torch.cat([inner, outer, faces, special])
 
 
+def test_index_grid_lookup_with_and_without_border_agrees_with_a_dictionary():
+    """A grid with a border clamps cells outside onto its empty outer layer; one without tests each cell: both
+    return each cell's value and -1 for every cell outside, on every side and far away."""
+    g = torch.Generator().manual_seed(0)
+    coords = torch.randint(-5, 6, (60, 3), generator=g)
+    values = torch.arange(60)
+    truth = {}
+    for c, v in zip(coords.tolist(), values.tolist(), strict=True):
+        truth[tuple(c)] = max(truth.get(tuple(c), -1), v)  # a cell keeps the largest value
+    q = torch.cat([torch.randint(-9, 10, (4000, 3), generator=g), coords,
+                   torch.tensor([[1 << 40, 0, 0], [0, -(1 << 40), 0], [0, 0, 1 << 40], [-7, 8, -9]])])
+    want = torch.tensor([truth.get(tuple(c), -1) for c in q.tolist()])
+    for border in (0, 1, 3):
+        grid = build_index_grid(coords, values, level=0, border=border, max_cells=1 << 20)
+        assert grid.border == border
+        assert torch.equal(grid.lookup(q), want), border
+        assert torch.equal(grid.lookup(q.reshape(-1, 2, 3)), want.reshape(-1, 2))  # any leading shape
+
+
 @pytest.mark.parametrize("centre", [(0.0, 0.0, 0.0), (-3000.0, 250.5, -7.3), (150_000.0, -150_000.0, 0.0)])
 def test_lookup_via_dense_grid_equals_sorted_codes(centre):
     vm = VoxelMap(0.2, seed=0)
