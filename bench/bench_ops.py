@@ -16,7 +16,9 @@ first 10 frames with the ``cpu`` sizes; then:
   (one field evaluation + one backward pass + a 6x6 solve);
 * ``mapping/band`` and ``mapping/voxels``: one :meth:`Mapper.optimize` iteration (window of keyframes,
   render, losses, Adam) with the fixed-shape band sampler and with the paper's voxel sampler (``mapping``
-  on a checkout that has only the latter).
+  on a checkout that has only the latter); this map has one or two keyframes, so the window is small;
+* ``mapping/band x4``: one :meth:`Mapper.step` over a window of 4 frames (frames 6-9, the first held fixed),
+  the size of a running session's window at the ``cpu`` preset (3 keyframes + the newest frame).
 
 Counted: every ``aten::`` operator event (nested ones included, so a composite op counts with its parts),
 and the ones that make the host wait on a GPU: ``_local_scalar_dense`` (``.item()``, ``float()``,
@@ -126,6 +128,16 @@ def main(argv: list[str] | None = None) -> int:
                           (c["host_syncs"] - c["host_syncs_in_optimizer"]) / iters,
                       "sync_ops_per_round": c["sync_ops"]}
     mapper.config = default_config
+    # the CPU preset's window in a running session: the newest frame and 3 keyframes (mapper.step on 4 frames)
+    from voxfusion.core.mapping import Keyframe
+
+    window = [Keyframe.create(frame_to_device(cap[i], "cpu"), torch.as_tensor(cap[i].T_world_cam), fixed=i == 6)
+              for i in (6, 7, 8, 9)]
+    c = count_ops(lambda: mapper.step(window), args.repeats)
+    rows["mapping/band x4"] = {"aten_ops_per_iteration": c["aten_ops"], "host_syncs_per_iteration": c["host_syncs"],
+                               "host_syncs_outside_optimizer_per_iteration":
+                                   c["host_syncs"] - c["host_syncs_in_optimizer"],
+                               "sync_ops_per_iteration": c["sync_ops"]}
 
     print(f"{'scenario':<18}{'aten ops / it':>15}{'host syncs / it':>17}{'outside Adam':>14}")
     for name, r in rows.items():
