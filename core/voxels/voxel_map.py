@@ -550,26 +550,28 @@ class VoxelMap:
         ijk = torch.div(cells, SURFACE_CELLS, rounding_mode="floor")
         idx = self.lookup_allocated_cells(ijk)
         local = cells - ijk * SURFACE_CELLS
-        bit = (local[:, 0] * SURFACE_CELLS + local[:, 1]) * SURFACE_CELLS + local[:, 2]
-        # one int64 key per (voxel, cell), -1 outside the map: a 1-D unique (dense flags over the map's cells, no
-        # sort of N) instead of a row-wise unique over [N, 3], and no boolean indexing of [N, 3] arrays
-        cell_key = unique_bounded(torch.where(idx >= 0, idx * SURFACE_CELLS**3 + bit, torch.full_like(idx, -1)),
-                                  self.n_voxels * SURFACE_CELLS**3)
-        if cell_key.numel() == 0:
+        bit = (local[:, 0] * SURFACE_CELLS + local[:, 1]) * SURFACE_CELLS + local[:, 2]  # cell in its voxel
+        # the voxels the points fall in, numbered 0..T-1: the frame's cells become flags over those T voxels only
+        # (the frame's footprint, whatever the map's size), packed into the mask's bytes; no sort and no unique
+        # over the points
+        touched = unique_bounded(idx, self.n_voxels)
+        n_touched = int(touched.numel())
+        if n_touched == 0:
             return 0
-        bit = cell_key % 8
-        # sorted keys: consecutive duplicates only
-        keys, inverse = torch.unique_consecutive(cell_key // 8, return_inverse=True)
-        # the cells are unique, so per byte the sum of distinct powers of two is their bitwise OR
-        add = torch.zeros(len(keys), dtype=torch.int32, device=self.device)
-        add.index_add_(0, inverse, (1 << (bit % 8)).to(torch.int32))
-        flat = self._voxel_surface.reshape(-1).clone()
-        old = flat[keys]
-        new = old | add.to(torch.uint8)
-        flat[keys] = new
-        self._voxel_surface = flat.view(-1, _SURFACE_BYTES)
-        gained = (_popcount8(new) - _popcount8(old)).to(torch.int32)
-        self._voxel_surface_count = self._voxel_surface_count.index_add(0, keys // _SURFACE_BYTES, gained)
+        cells_per_voxel = SURFACE_CELLS**3
+        slot = torch.full((self.n_voxels,), -1, dtype=torch.int64, device=self.device)
+        slot[touched] = torch.arange(n_touched, device=self.device)
+        flags = torch.zeros(n_touched * cells_per_voxel + 1, dtype=torch.bool, device=self.device)  # last: none
+        flags[torch.where(idx >= 0, slot[idx.clamp(min=0)] * cells_per_voxel + bit,
+                          torch.full_like(idx, n_touched * cells_per_voxel))] = True
+        add = _pack_flags(flags[:-1]).view(n_touched, _SURFACE_BYTES)  # cell c: byte c // 8, bit c % 8
+        old = self._voxel_surface[touched]  # [T, bytes]
+        new = old | add
+        surface = self._voxel_surface.clone()
+        surface[touched] = new
+        self._voxel_surface = surface
+        gained = (_popcount8(new).sum(1) - _popcount8(old).sum(1)).to(torch.int32)
+        self._voxel_surface_count = self._voxel_surface_count.index_add(0, touched, gained)
         return int(gained.sum())
 
     def surface_cell_counts(self) -> torch.Tensor:
@@ -772,6 +774,17 @@ class VoxelMap:
 
 
 _POPCOUNT8 = torch.tensor([bin(i).count("1") for i in range(256)], dtype=torch.int64)
+
+
+def _pack_flags(flags: torch.Tensor) -> torch.Tensor:
+    """``[8 K]`` bool -> ``[K]`` uint8 with bit ``j`` of byte ``k`` = ``flags[8 k + j]`` (numpy's ``packbits``
+    with ``bitorder="little"``, on any device). Four flags at a time: their bytes read as one int32 ``x`` (each
+    0 or 1; little-endian), ``x * (2^24 + 2^17 + 2^10 + 2^3)`` carries flag ``j`` to bit ``24 + j`` and nothing
+    else there (each product bit has at most one source, so there are no carries), in int64 without overflow."""
+    quads = flags.contiguous().view(torch.uint8).view(torch.int32).to(torch.int64)  # [2 K]
+    nibbles = ((quads * ((1 << 24) + (1 << 17) + (1 << 10) + (1 << 3))) >> 24) & 0xF
+    pairs = nibbles.view(-1, 2)
+    return (pairs[:, 0] | (pairs[:, 1] << 4)).to(torch.uint8)
 
 
 def _popcount8(x: torch.Tensor) -> torch.Tensor:

@@ -50,6 +50,9 @@ def test_surface_mask_marks_cells_counts_and_survives_a_checkpoint():
         vmap.add_surface_points(part)
     bits = sum(((vmap.voxel_surface.long() >> b) & 1).sum(1) for b in range(8))
     assert torch.equal(vmap.surface_cell_counts().long(), bits) and int(bits.sum()) > 1000
+    # and the mask holds exactly the cells of every point added (each bit where it belongs)
+    expected |= {tuple(c) for c in np.floor(cloud.numpy() / cell).astype(int).tolist()}
+    assert {tuple(c) for c in vmap.surface_cells().tolist()} == expected
     old = vmap.state_dict()
     del old["voxel_surface"]
     legacy = VoxelMap.from_state_dict(old)

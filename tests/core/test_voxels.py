@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -435,3 +436,16 @@ def test_cuda_map_matches_cpu_map():
     assert torch.equal(gpu.lookup_voxels(pts.cuda()).cpu(), cpu.lookup_voxels(pts))
     moved = VoxelMap.from_state_dict(cpu.state_dict()).to("cuda")
     assert torch.equal(moved.lookup_voxels(pts.cuda()).cpu(), cpu.lookup_voxels(pts))
+
+
+def test_pack_flags_matches_numpy_packbits_little_endian():
+    """The surface mask's bit packing (four flags per multiply, no loop over bits) against numpy's reference."""
+    from voxfusion.core.voxels.voxel_map import _pack_flags
+
+    g = torch.Generator().manual_seed(0)
+    for n, p in ((8, 0.5), (64, 0.1), (3 * 4096, 0.3), (4096, 1.0), (4096, 0.0)):
+        flags = torch.rand(n, generator=g) < p
+        want = np.packbits(flags.numpy(), bitorder="little")
+        assert np.array_equal(_pack_flags(flags).numpy(), want), (n, p)
+    assert _pack_flags(torch.ones(16, dtype=torch.bool)).tolist() == [255, 255]
+    assert _pack_flags(torch.arange(16) == 9).tolist() == [0, 2]  # flag 9: byte 1, bit 1
