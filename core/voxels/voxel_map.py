@@ -788,5 +788,5 @@ def _pack_flags(flags: torch.Tensor) -> torch.Tensor:
 
 
 def _popcount8(x: torch.Tensor) -> torch.Tensor:
-    """Set bits of each uint8 ``[N]`` as int64 ``[N]``."""
+    """Set bits of each uint8 of ``x`` (any shape) as int64, same shape."""
     return _POPCOUNT8.to(x.device)[x.long()]
