@@ -41,6 +41,7 @@ from .field import SDFDecoder
 from .frame_checks import MIN_INIT_VALID_PIXELS, intrinsics_problem, usable_pose
 from .framedata import FrameData, frame_to_device
 from .geometry import invert_pose, nearest_rigid
+from .host_memory import retain_freed_memory
 from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper
 from .mesh import extract_map_mesh
 from .mesh.frame import WorldAxes, camera_up_forward
@@ -179,6 +180,8 @@ class SlamSystem:
         self.config = config
         self.device = resolve_device(config.device)
         preload_optimizer()  # the map and its optimisers are built with the first frame
+        if self.device.type == "cpu":
+            retain_freed_memory()  # per-iteration temporaries reuse heap pages (host_memory)
         self._use_color = use_color
         self.on_pose = on_pose
         self.mapper: Mapper | None = None
