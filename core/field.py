@@ -307,10 +307,41 @@ class _WeightedCornerSum(torch.autograd.Function):
 
 def trilinear_weights(local_xyz: torch.Tensor) -> torch.Tensor:
     """``[K, 3]`` in-voxel coordinates in [0, 1] -> ``[K, 8]`` trilinear weights in corner order
-    ``c = 4 dx + 2 dy + dz`` (:data:`~.voxels.CORNER_OFFSETS`), as an outer product of the per-axis weights."""
-    one = torch.stack([1.0 - local_xyz, local_xyz], -1)  # [K, 3, 2]: weight of corner d in {0, 1} per axis
-    wx, wy, wz = one[:, 0], one[:, 1], one[:, 2]
-    return (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
+    ``c = 4 dx + 2 dy + dz`` (:data:`~.voxels.CORNER_OFFSETS`), differentiable in the coordinates (first order).
+
+    Written per column with a hand-written backward: the broadcast outer product of ``[K, 2]`` factors it
+    replaces runs PyTorch's elementwise kernels over inner dimensions of size 1 and 2, and took ~1.1 ms forward
+    and backward at 6912 samples on a 2-core CPU against ~0.3 ms for this (a CPU mapping iteration of the
+    ``cpu`` preset has 7-9k samples). :func:`interpolate_reference` builds the same weights the plain way and
+    the tests hold the two together, values and gradients."""
+    return _TrilinearWeights.apply(local_xyz)
+
+
+class _TrilinearWeights(torch.autograd.Function):
+    """:func:`trilinear_weights`: forward from the coordinate columns, backward from the weight columns."""
+
+    @staticmethod
+    def forward(ctx, local_xyz: torch.Tensor) -> torch.Tensor:  # noqa: ANN001
+        ctx.save_for_backward(local_xyz)
+        x1, y1, z1 = local_xyz.unbind(1)
+        x0, y0, z0 = 1.0 - x1, 1.0 - y1, 1.0 - z1
+        w00, w01, w10, w11 = x0 * y0, x0 * y1, x1 * y0, x1 * y1  # (dx, dy) pairs
+        return torch.stack([w00 * z0, w00 * z1, w01 * z0, w01 * z1, w10 * z0, w10 * z1, w11 * z0, w11 * z1], 1)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_w: torch.Tensor) -> torch.Tensor:  # noqa: ANN001, ANN205
+        (local_xyz,) = ctx.saved_tensors
+        x1, y1, z1 = local_xyz.unbind(1)
+        x0, y0, z0 = 1.0 - x1, 1.0 - y1, 1.0 - z1
+        g = grad_w.unbind(1)  # g[4 dx + 2 dy + dz]
+        # per (dx, dy): the gradient summed over dz with its weights, and its difference along z
+        gz_sum = [g[2 * p] * z0 + g[2 * p + 1] * z1 for p in range(4)]
+        gz_diff = [g[2 * p + 1] - g[2 * p] for p in range(4)]
+        dx = (gz_sum[2] - gz_sum[0]) * y0 + (gz_sum[3] - gz_sum[1]) * y1
+        dy = (gz_sum[1] - gz_sum[0]) * x0 + (gz_sum[3] - gz_sum[2]) * x1
+        dz = (gz_diff[0] * y0 + gz_diff[1] * y1) * x0 + (gz_diff[2] * y0 + gz_diff[3] * y1) * x1
+        return torch.stack([dx, dy, dz], 1)
 
 
 def interpolate_reference(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor,

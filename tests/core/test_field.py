@@ -131,6 +131,28 @@ def _map_with_points_inside(embed_dim: int, n_allocated: int, n_points: int, see
     return vm, pts, idx, torch.randn(pts.shape[0], embed_dim, generator=g)
 
 
+def test_trilinear_weights_are_the_corner_products_with_their_gradient():
+    """The per-column weights (hand-written backward) against the products of per-axis weights in corner
+    order, and the backward against finite differences (float64)."""
+    from voxfusion.core.field import trilinear_weights
+
+    g = torch.Generator().manual_seed(3)
+    local = torch.rand(257, 3, generator=g, dtype=torch.float64)
+    local[:4] = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.0, 1.0, 0.5], [0.25, 0.0, 1.0]])
+    off = CORNER_OFFSETS.to(torch.float64)
+    want = (off * local[:, None, :] + (1.0 - off) * (1.0 - local[:, None, :])).prod(-1)  # [K, 8]
+    got = trilinear_weights(local)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-15)
+    torch.testing.assert_close(got.sum(1), torch.ones(257, dtype=torch.float64))
+    x = local[:40].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(trilinear_weights, (x,))
+    y = local[:40].clone().requires_grad_(True)
+    out_grad = torch.randn(40, 8, generator=g, dtype=torch.float64)
+    (gx,) = torch.autograd.grad(trilinear_weights(y), [y], out_grad)
+    (gy,) = torch.autograd.grad((off * y[:, None, :] + (1.0 - off) * (1.0 - y[:, None, :])).prod(-1), [y], out_grad)
+    torch.testing.assert_close(gx, gy, rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize("n_points", [3000, 40])
 def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_points: int):
     """The fast path (embedding_bag forward, hand-written backward) against the plain gather-and-sum:
