@@ -259,12 +259,19 @@ def test_sdf_tracker_on_real_7scenes_frames(shared_data):
     assert not rd.lost and dt < 0.03 and da < 1.2, (dt, da)
 
 
-def test_spd_solver_matches_lapack():
-    from voxfusion.core.tracking_sdf import solve_spd
+def test_spd_solvers_match_lapack_and_step_nowhere_on_a_degenerate_system():
+    """The CPU path (Cholesky) and the device path (elimination, what CUDA runs) against LAPACK's solve; a
+    matrix that is not positive definite gives no step on the CPU path."""
+    from voxfusion.core.tracking_sdf import solve_spd, solve_spd_elimination
 
     g = torch.Generator().manual_seed(0)
     for _ in range(5):
         J = torch.randn(50, 6, generator=g, dtype=torch.float64)
         A = J.T @ J + 1e-3 * torch.eye(6, dtype=torch.float64)
         b = torch.randn(6, generator=g, dtype=torch.float64)
-        torch.testing.assert_close(solve_spd(A, b), torch.linalg.solve(A, b), rtol=1e-9, atol=1e-10)
+        for solve in (solve_spd, solve_spd_elimination):
+            torch.testing.assert_close(solve(A, b), torch.linalg.solve(A, b), rtol=1e-9, atol=1e-10)
+    indefinite = torch.diag(torch.tensor([1.0, 2.0, -1.0, 1.0, 1.0, 1.0], dtype=torch.float64))
+    assert torch.equal(solve_spd(indefinite, torch.ones(6, dtype=torch.float64)), torch.zeros(6, dtype=torch.float64))
+    nan = torch.full((6, 6), float("nan"), dtype=torch.float64)
+    assert torch.equal(solve_spd(nan, torch.ones(6, dtype=torch.float64)), torch.zeros(6, dtype=torch.float64))
