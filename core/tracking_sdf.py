@@ -226,7 +226,8 @@ def solve_spd(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     is not positive definite (a degenerate system: no step).
 
     On a CPU: Cholesky (``cholesky_ex``, no error check) and ``cholesky_solve``, two operators (~11 us at
-    6 x 6 on one core, against ~84 us for the elimination below, ~9 solves per tracked frame). Elsewhere:
+    6 x 6 on one core, against ~84 us for the elimination below, ~9 solves per tracked frame;
+    ``cholesky_solve`` reads LAPACK's status back, one scalar read that costs nothing on a CPU). Elsewhere:
     :func:`solve_spd_elimination`, whose whole-matrix operations never wait for the device and can be
     captured in a CUDA graph. Both are tested against :func:`torch.linalg.solve`."""
     if A.device.type != "cpu":
