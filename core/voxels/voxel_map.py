@@ -570,7 +570,7 @@ class VoxelMap:
         surface = self._voxel_surface.clone()
         surface[touched] = new
         self._voxel_surface = surface
-        gained = (_popcount8(new).sum(1) - _popcount8(old).sum(1)).to(torch.int32)
+        gained = _popcount8(add & ~old).sum(1).to(torch.int32)  # the bits this frame set (one count, not two)
         self._voxel_surface_count = self._voxel_surface_count.index_add(0, touched, gained)
         return int(gained.sum())
 
