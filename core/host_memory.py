@@ -5,9 +5,10 @@ activations, gathered corner rows), tens of times per frame. PyTorch's CPU alloc
 library's ``malloc``. With glibc's defaults a freed block that leaves more than its (dynamic) trim threshold
 free at the top of the heap is handed back to the kernel, so the next iteration's allocation of the same size
 faults every page in again (and the kernel zeroes each one). Measured on the 320x240 synthetic room, 100
-frames, ``cpu`` preset, 2-core Intel Xeon (``python bench/bench_host_memory.py``): ~676k minor page faults
-per run with the defaults against ~111k with the limits below; see ``bench/results/host_memory.json`` for
-the frames/s.
+frames, ``cpu`` preset, 2-core Intel Xeon (``python bench/bench_host_memory.py``, 3 pairs,
+``bench/results/host_memory.json``): 283k-493k minor page faults during the frames with glibc's defaults
+against 17k-19k with the limits below, 11.57 -> 12.25 frames/s (median; pairwise ratio 1.06), the same peak
+resident memory (544 MB).
 
 :func:`retain_freed_memory` sets two fixed limits with ``mallopt`` (glibc only; elsewhere it does nothing):
 blocks up to :data:`MMAP_THRESHOLD_BYTES` come from the heap, and up to :data:`TRIM_THRESHOLD_BYTES` of freed
