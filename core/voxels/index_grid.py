@@ -70,8 +70,11 @@ class VoxelIndexGrid:
         """
         if cells.shape[-1:] != (3,):
             raise ShapeError("cells", tuple(cells.shape), "[..., 3]")
+        return self._flat_index_xyz(*cells.unbind(-1))
+
+    def _flat_index_xyz(self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
         # per axis with Python-int bounds: about twice as fast as broadcasting over the last dimension
-        x, y, z = cells.unbind(-1)
         (ox, oy, oz), (nx, ny, nz) = self.origin_xyz, self.shape
         x, y, z = x - ox, y - oy, z - oz
         inside = (x >= 0) & (x < nx) & (y >= 0) & (y < ny) & (z >= 0) & (z < nz)
@@ -87,13 +90,18 @@ class VoxelIndexGrid:
         border-less grids)."""
         if cells.shape[-1:] != (3,):
             raise ShapeError("cells", tuple(cells.shape), "[..., 3]")
+        return self.lookup_xyz(*cells.unbind(-1))
+
+    def lookup_xyz(self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """:meth:`lookup` of cells given as three int64 coordinate tensors of one shape (each contiguous,
+        where ``cells.unbind(-1)`` gives strided views: callers that build coordinates per axis skip the
+        stacking and the strided arithmetic)."""
         if self.border >= 1:
-            x, y, z = cells.unbind(-1)
             (ox, oy, oz), (nx, ny, nz) = self.origin_xyz, self.shape
             sx, sy, _ = self.strides
             flat = (x - ox).clamp(0, nx - 1) * sx + (y - oy).clamp(0, ny - 1) * sy + (z - oz).clamp(0, nz - 1)
             return self.table[flat].to(torch.int64)
-        flat, inside = self.flat_index(cells)
+        flat, inside = self._flat_index_xyz(x, y, z)
         val = self.table[flat].to(torch.int64)
         return torch.where(inside, val, torch.full_like(val, -1))
 

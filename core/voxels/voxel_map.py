@@ -368,19 +368,38 @@ class VoxelMap:
         if ijk.shape[-1:] != (3,):
             raise ShapeError("ijk", tuple(ijk.shape), "[..., 3]")
         ijk = ijk.to(self.device, torch.int64)
-        if self.n_voxels == 0:
-            return torch.full(ijk.shape[:-1], -1, dtype=torch.int64, device=self.device)
-        if self._n_inactive == 0:
-            grid = self.index_grid()
-        else:
-            if _ALLOCATED_GRID not in self._grids:
-                coords = self._voxel_coords
-                self._grids[_ALLOCATED_GRID] = build_index_grid(
-                    coords, torch.arange(coords.shape[0], device=coords.device), 0, border=1,
-                    max_cells=self._dense_grid_max_cells)
-            grid = self._grids[_ALLOCATED_GRID]
+        grid = self._allocated_grid()
         if grid is not None:
             return grid.lookup(ijk)
+        return self._lookup_allocated_sorted(ijk)
+
+    def lookup_allocated_xyz(self, i: torch.Tensor, j: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+        """:meth:`lookup_allocated_cells` of coordinates given per axis (three int64 tensors of one shape, on
+        the map's device): no ``[..., 3]`` tensor is built while the dense grid serves."""
+        if not (i.shape == j.shape == k.shape):
+            raise ShapeError("i/j/k", (tuple(i.shape), tuple(j.shape), tuple(k.shape)), "three equal shapes")
+        grid = self._allocated_grid()
+        if grid is not None:
+            return grid.lookup_xyz(i, j, k)
+        return self._lookup_allocated_sorted(torch.stack([i, j, k], -1))
+
+    def _allocated_grid(self) -> VoxelIndexGrid | None:
+        """The dense grid over every allocated voxel (active or not), or None (empty map, or too large)."""
+        if self.n_voxels == 0:
+            return None
+        if self._n_inactive == 0:
+            return self.index_grid()
+        if _ALLOCATED_GRID not in self._grids:
+            coords = self._voxel_coords
+            self._grids[_ALLOCATED_GRID] = build_index_grid(
+                coords, torch.arange(coords.shape[0], device=coords.device), 0, border=1,
+                max_cells=self._dense_grid_max_cells)
+        return self._grids[_ALLOCATED_GRID]
+
+    def _lookup_allocated_sorted(self, ijk: torch.Tensor) -> torch.Tensor:
+        """:meth:`lookup_allocated_cells` through the sorted Morton codes (no dense grid)."""
+        if self.n_voxels == 0:
+            return torch.full(ijk.shape[:-1], -1, dtype=torch.int64, device=self.device)
         inside = ((ijk >= MORTON_MIN_COORD) & (ijk <= MORTON_MAX_COORD)).all(-1)
         codes = morton_encode(torch.where(inside[..., None], ijk, torch.zeros_like(ijk)))
         idx = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes)

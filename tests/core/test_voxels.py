@@ -199,6 +199,25 @@ def test_index_grid_lookup_with_and_without_border_agrees_with_a_dictionary():
         assert grid.border == border
         assert torch.equal(grid.lookup(q), want), border
         assert torch.equal(grid.lookup(q.reshape(-1, 2, 3)), want.reshape(-1, 2))  # any leading shape
+        assert torch.equal(grid.lookup_xyz(*(c.contiguous() for c in q.unbind(-1))), want), border
+
+
+@pytest.mark.parametrize("budget", [1 << 26, 8])
+def test_allocated_lookup_per_axis_matches_the_stacked_one(budget):
+    """Coordinates given per axis find the same voxels as ``[..., 3]`` ones, inactive voxels included, through
+    the dense grid and (a budget too small for any grid) through the sorted codes."""
+    vm = VoxelMap(0.2, seed=0)
+    vm.dense_grid_max_cells = budget
+    vm.allocate(_random_points(400, 20, 1.5).double())
+    vm.set_active(torch.arange(vm.n_voxels) % 3 != 0)
+    g = torch.Generator().manual_seed(4)
+    lo, hi = vm.voxel_bounds
+    q = torch.stack([torch.randint(int(lo[a]) - 3, int(hi[a]) + 4, (3000,), generator=g) for a in range(3)], -1)
+    q = torch.cat([q, vm.voxel_coords])
+    q = q[: q.shape[0] // 7 * 7].reshape(-1, 7, 3)  # any leading shape
+    want = vm.lookup_allocated_cells(q)
+    assert torch.equal(vm.lookup_allocated_xyz(*(c.contiguous() for c in q.unbind(-1))), want)
+    assert int((want >= 0).sum()) > 0 and int((want[want >= 0] % 3 == 0).sum()) > 0  # inactive voxels are found too
 
 
 @pytest.mark.parametrize("centre", [(0.0, 0.0, 0.0), (-3000.0, 250.5, -7.3), (150_000.0, -150_000.0, 0.0)])
