@@ -171,8 +171,12 @@ def _mlp(sdf_net: nn.Module, color_net: nn.Module | None, x: torch.Tensor
     ``[K, 3]`` (None without ``color_net``). A free function over the modules, so one compiled version
     serves every decoder instance (snapshots are copies)."""
     out = sdf_net(x)
-    rgb = color_net(torch.cat([out[:, 1:], x], -1)) if color_net is not None else None
-    return out[:, 0], rgb
+    if color_net is None:
+        return out[:, 0], None
+    # one split (its backward is one concatenation) rather than a select and a slice, whose backwards each fill
+    # a zero [K, 1 + geo] gradient and are then added
+    sdf, geo = out.split([1, out.shape[1] - 1], dim=1)
+    return sdf.squeeze(1), color_net(torch.cat([geo, x], -1))
 
 
 def _run_mlp(sdf_net: nn.Module, color_net: nn.Module | None, x: torch.Tensor, compiled: bool
