@@ -170,9 +170,12 @@ def _mlp(sdf_net: nn.Module, color_net: nn.Module | None, x: torch.Tensor
     """The decoder's layers on its input ``x [K, input_dim]``: raw SDF ``[K]`` (truncation units) and RGB
     ``[K, 3]`` (None without ``color_net``). A free function over the modules, so one compiled version
     serves every decoder instance (snapshots are copies)."""
+    if color_net is None:  # geometry only (the SDF tracker, meshing): the last layer's SDF row alone
+        *hidden, last = sdf_net
+        for layer in hidden:
+            x = layer(x)
+        return torch.nn.functional.linear(x, last.weight[:1], last.bias[:1])[:, 0], None
     out = sdf_net(x)
-    if color_net is None:
-        return out[:, 0], None
     # one split (its backward is one concatenation) rather than a select and a slice, whose backwards each fill
     # a zero [K, 1 + geo] gradient and are then added
     sdf, geo = out.split([1, out.shape[1] - 1], dim=1)

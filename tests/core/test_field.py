@@ -265,3 +265,20 @@ def test_compile_failure_leaves_one_warning_and_the_eager_decoder(monkeypatch, c
     for g in got:
         torch.testing.assert_close(g, ref(feats)[0], atol=0, rtol=0)
     torch._dynamo.reset()
+
+
+def test_geometry_only_decoding_is_the_sdf_of_the_full_decoder_with_its_gradient():
+    """``with_color=False`` (SDF tracker, meshing) evaluates only the SDF row of the last layer: the same SDF
+    and the same gradient to the features as the full decoder."""
+    torch.manual_seed(0)
+    dec = SDFDecoder(FieldConfig(sdf_hidden=32, color_hidden=32))
+    feats = torch.randn(500, 16, generator=torch.Generator().manual_seed(5)) * 0.3
+    x_full = feats.clone().requires_grad_(True)
+    x_geo = feats.clone().requires_grad_(True)
+    sdf_full, rgb = dec(x_full)
+    sdf_geo, none = dec(x_geo, with_color=False)
+    assert rgb is not None and none is None and sdf_geo.shape == (500,)
+    torch.testing.assert_close(sdf_geo, sdf_full, rtol=1e-5, atol=1e-7)
+    (g_full,) = torch.autograd.grad(sdf_full.sum(), x_full)
+    (g_geo,) = torch.autograd.grad(sdf_geo.sum(), x_geo)
+    torch.testing.assert_close(g_geo, g_full, rtol=1e-5, atol=1e-7)
