@@ -192,9 +192,9 @@ def free_space_voxels(voxel_map: VoxelMap, depth_m: torch.Tensor, K: torch.Tenso
         width = steps_sorted[stop - 1] + 1
         k = torch.arange(width, device=dev, dtype=torch.float32)
         t = torch.minimum(k[None, :] * dt[ids, None], t_end[ids, None])  # [r, width], padded with t_end
-        i, j, k = (torch.floor((dirs_xyz[a, ids, None] * t + origin_xyz[a]) * inv_v).to(torch.int64)
-                   for a in range(3))
-        idx = voxel_map.lookup_allocated_xyz(i, j, k)  # [r, width], -1 where nothing is allocated
+        cell_xyz = (torch.floor((dirs_xyz[a, ids, None] * t + origin_xyz[a]) * inv_v).to(torch.int64)
+                    for a in range(3))
+        idx = voxel_map.lookup_allocated_xyz(*cell_xyz)  # [r, width], -1 where nothing is allocated
         first = torch.ones_like(idx, dtype=torch.bool)
         first[:, 1:] = idx[:, 1:] != idx[:, :-1]  # a ray never re-enters a voxel
         keep = first & (idx >= 0) & (idx != idx[:, -1:])  # the last column is each ray's end point

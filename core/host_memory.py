@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import logging
 import os
 import sys
-import threading
 
 __all__ = ["MMAP_THRESHOLD_BYTES", "TRIM_THRESHOLD_BYTES", "retain_freed_memory"]
 
@@ -40,21 +40,12 @@ TRIM_THRESHOLD_BYTES = 64 << 20
 _M_TRIM_THRESHOLD = -1  # glibc <malloc.h>
 _M_MMAP_THRESHOLD = -3
 
-_LOCK = threading.Lock()
-_STATE: dict[str, bool | None] = {"applied": None}
 
-
+@functools.cache
 def retain_freed_memory() -> bool:
     """Apply the heap limits once per process; True when they are in force (glibc), False where this C
     library has no ``mallopt``, refused a value, or ``VOXFUSION_HEAP_DEFAULTS`` is set. Later calls return the
-    first call's answer."""
-    with _LOCK:
-        if _STATE["applied"] is None:
-            _STATE["applied"] = _apply()
-        return bool(_STATE["applied"])
-
-
-def _apply() -> bool:
+    first call's answer (``mallopt`` is idempotent, so two first calls racing do no harm)."""
     if os.environ.get("VOXFUSION_HEAP_DEFAULTS", "") not in ("", "0"):
         return False
     if not sys.platform.startswith("linux"):

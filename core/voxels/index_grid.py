@@ -63,31 +63,11 @@ class VoxelIndexGrid:
     def nbytes(self) -> int:
         return self.table.numel() * self.table.element_size()
 
-    def flat_index(self, cells: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``cells [..., 3]`` int64 cell coordinates -> ``(flat [...] int64, inside [...] bool)``.
-
-        ``flat`` is 0 where ``inside`` is False (entry 0 is a border cell, always -1).
-        """
-        if cells.shape[-1:] != (3,):
-            raise ShapeError("cells", tuple(cells.shape), "[..., 3]")
-        return self._flat_index_xyz(*cells.unbind(-1))
-
-    def _flat_index_xyz(self, x: torch.Tensor, y: torch.Tensor, z: torch.Tensor
-                        ) -> tuple[torch.Tensor, torch.Tensor]:
-        # per axis with Python-int bounds: about twice as fast as broadcasting over the last dimension
-        (ox, oy, oz), (nx, ny, nz) = self.origin_xyz, self.shape
-        x, y, z = x - ox, y - oy, z - oz
-        inside = (x >= 0) & (x < nx) & (y >= 0) & (y < ny) & (z >= 0) & (z < nz)
-        sx, sy, _ = self.strides
-        flat = (x * sx + y * sy + z) * inside
-        return flat, inside
-
     def lookup(self, cells: torch.Tensor) -> torch.Tensor:
         """Value of each cell ``[..., 3]`` (int64) -> ``[...]`` int64, -1 outside the grid or where empty.
 
         With a border, a cell outside the table is clamped onto the table's outer layer, which is all empty:
-        no inside test and no select (half the operations of :meth:`flat_index`'s path, which serves
-        border-less grids)."""
+        no inside test and no select (half the operations of the border-less path)."""
         if cells.shape[-1:] != (3,):
             raise ShapeError("cells", tuple(cells.shape), "[..., 3]")
         return self.lookup_xyz(*cells.unbind(-1))
@@ -96,13 +76,15 @@ class VoxelIndexGrid:
         """:meth:`lookup` of cells given as three int64 coordinate tensors of one shape (each contiguous,
         where ``cells.unbind(-1)`` gives strided views: callers that build coordinates per axis skip the
         stacking and the strided arithmetic)."""
+        # per axis with Python-int bounds: about twice as fast as broadcasting over the last dimension
+        (ox, oy, oz), (nx, ny, nz) = self.origin_xyz, self.shape
+        sx, sy, _ = self.strides
         if self.border >= 1:
-            (ox, oy, oz), (nx, ny, nz) = self.origin_xyz, self.shape
-            sx, sy, _ = self.strides
             flat = (x - ox).clamp(0, nx - 1) * sx + (y - oy).clamp(0, ny - 1) * sy + (z - oz).clamp(0, nz - 1)
             return self.table[flat].to(torch.int64)
-        flat, inside = self._flat_index_xyz(x, y, z)
-        val = self.table[flat].to(torch.int64)
+        x, y, z = x - ox, y - oy, z - oz
+        inside = (x >= 0) & (x < nx) & (y >= 0) & (y < ny) & (z >= 0) & (z < nz)
+        val = self.table[(x * sx + y * sy + z) * inside].to(torch.int64)  # entry 0 where outside: masked below
         return torch.where(inside, val, torch.full_like(val, -1))
 
 

@@ -204,8 +204,9 @@ def test_index_grid_lookup_with_and_without_border_agrees_with_a_dictionary():
 
 @pytest.mark.parametrize("budget", [1 << 26, 8])
 def test_allocated_lookup_per_axis_matches_the_stacked_one(budget):
-    """Coordinates given per axis find the same voxels as ``[..., 3]`` ones, inactive voxels included, through
-    the dense grid and (a budget too small for any grid) through the sorted codes."""
+    """Coordinates given per axis and as ``[..., 3]`` both find exactly the allocated voxels (a dictionary of
+    their coordinates), inactive ones included, through the dense grid and (a budget too small for any grid)
+    through the sorted codes."""
     vm = VoxelMap(0.2, seed=0)
     vm.dense_grid_max_cells = budget
     vm.allocate(_random_points(400, 20, 1.5).double())
@@ -215,7 +216,9 @@ def test_allocated_lookup_per_axis_matches_the_stacked_one(budget):
     q = torch.stack([torch.randint(int(lo[a]) - 3, int(hi[a]) + 4, (3000,), generator=g) for a in range(3)], -1)
     q = torch.cat([q, vm.voxel_coords])
     q = q[: q.shape[0] // 7 * 7].reshape(-1, 7, 3)  # any leading shape
-    want = vm.lookup_allocated_cells(q)
+    index = {tuple(c): i for i, c in enumerate(vm.voxel_coords.tolist())}  # the allocated voxels, independently
+    want = torch.tensor([index.get(tuple(c), -1) for c in q.reshape(-1, 3).tolist()]).reshape(q.shape[:-1])
+    assert torch.equal(vm.lookup_allocated_cells(q), want)
     assert torch.equal(vm.lookup_allocated_xyz(*(c.contiguous() for c in q.unbind(-1))), want)
     assert int((want >= 0).sum()) > 0 and int((want[want >= 0] % 3 == 0).sum()) > 0  # inactive voxels are found too
 
