@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .field import SDFDecoder, interpolate_unchecked, local_coords
+from .field import SDFDecoder, interpolate_unchecked, local_coords, sdf_with_gradient
 from .framedata import FrameData, sample_valid_pixels
 from .geometry import invert_pose
 from .lie import perturb_right
@@ -264,20 +264,21 @@ def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Te
     dtype = voxels.embeddings.dtype
     R = T[:3, :3].to(dtype)
     p_cam = pts.p_cam.to(dtype)
-    x = (p_cam @ R.T + T[:3, 3].to(dtype)).detach().requires_grad_(True)
-    idx = voxels.lookup_voxels(x.detach())
+    x = (p_cam @ R.T + T[:3, 3].to(dtype)).detach()
+    idx = voxels.lookup_voxels(x)
     inside = idx >= 0
     idx = idx.clamp(min=0)
-    with torch.enable_grad():
-        loc = local_coords(voxels, x, idx)
-        feats = interpolate_unchecked(voxels, x, idx, loc)
-        want_color = cfg.w_color > 0 and pts.gray is not None
-        sdf, rgb = decoder(feats, loc, with_color=want_color)
-        use_color = want_color and rgb is not None
-        grads = torch.autograd.grad(sdf.sum(), x, retain_graph=use_color)[0]
-        if use_color:
+    use_color = cfg.w_color > 0 and pts.gray is not None and decoder.color_net is not None
+    if use_color:  # the colour head's gradient too: through autograd
+        with torch.enable_grad():
+            x.requires_grad_(True)
+            loc = local_coords(voxels, x, idx)
+            sdf, rgb = decoder(interpolate_unchecked(voxels, x, idx, loc), loc, with_color=True)
+            grads = torch.autograd.grad(sdf.sum(), x, retain_graph=True)[0]
             gray_pred = rgb @ torch.tensor(_GRAY, dtype=rgb.dtype, device=rgb.device)
             g_col = torch.autograd.grad(gray_pred.sum(), x)[0]
+    else:  # geometry only: the field's SDF and spatial gradient in one pass, no autograd graph
+        sdf, grads = sdf_with_gradient(voxels, decoder, x, idx)
     r = sdf.detach()
     ok = inside & torch.isfinite(r) & (r.abs() < cfg.max_residual_m) & torch.isfinite(grads).all(-1)
     # residual blocks (value, world gradient, Huber scale, cost cap, valid), all in metres: the SDF, then the

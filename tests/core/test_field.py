@@ -282,3 +282,44 @@ def test_geometry_only_decoding_is_the_sdf_of_the_full_decoder_with_its_gradient
     (g_full,) = torch.autograd.grad(sdf_full.sum(), x_full)
     (g_geo,) = torch.autograd.grad(sdf_geo.sum(), x_geo)
     torch.testing.assert_close(g_geo, g_full, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("sdf_layers", [1, 2, 3])
+def test_sdf_with_gradient_matches_autograd_through_the_field(sdf_layers: int):
+    """The SDF tracker's field query (forward and backward written out, no autograd graph) against autograd
+    through the same interpolation and decoder: values and spatial gradients, for 1-3 hidden layers, with
+    points on voxel faces and corners (where the local coordinate is exactly 0 or 1) among random ones, and
+    with random decoder weights large enough that many ReLUs are off."""
+    from voxfusion.core.field import sdf_with_gradient, sdf_with_gradient_reference
+
+    vm, pts, idx, _ = _map_with_points_inside(16, 400, 3000, seed=4)
+    with torch.no_grad():
+        vm.embeddings.mul_(30.0)  # the map's init is tiny: spread the features so the decoder's units switch
+    corners = vm.voxel_coords[idx[:20]].to(pts.dtype) * vm.voxel_size_m  # voxel origins: local (0, 0, 0)
+    pts = torch.cat([corners, pts[20:]])
+    ref, _ = _decoder_pair(sdf_layers)
+    assert ref.has_plain_gradient
+    sdf, grad = sdf_with_gradient(vm, ref, pts, idx)
+    sdf_ref, grad_ref = sdf_with_gradient_reference(vm, ref, pts, idx)
+    scale = float(grad_ref.abs().max())
+    assert scale > 0.01 and (grad_ref.abs() > 0.1 * scale).float().mean() > 0.3  # not a comparison of zeros
+    torch.testing.assert_close(sdf, sdf_ref, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(grad, grad_ref, rtol=1e-4, atol=1e-5 * scale)
+    assert not sdf.requires_grad and not grad.requires_grad
+
+
+@pytest.mark.parametrize("variant", [{"local_coord_freqs": 2}, {"precision": "bfloat16"}])
+def test_sdf_with_gradient_falls_back_to_autograd_for_other_decoders(variant: dict):
+    """Decoders whose input is not the embedding alone (positional encoding) or that run in mixed precision
+    take the autograd path, so the result is the reference's exactly."""
+    import dataclasses
+
+    from voxfusion.core.field import sdf_with_gradient, sdf_with_gradient_reference
+
+    vm, pts, idx, _ = _map_with_points_inside(16, 200, 500, seed=5)
+    torch.manual_seed(0)
+    dec = SDFDecoder(dataclasses.replace(FieldConfig(sdf_hidden=32, color_hidden=32), **variant))
+    assert not dec.has_plain_gradient
+    for got, want in zip(sdf_with_gradient(vm, dec, pts, idx), sdf_with_gradient_reference(vm, dec, pts, idx),
+                         strict=True):
+        torch.testing.assert_close(got, want, rtol=0, atol=0)
