@@ -215,7 +215,8 @@ def evidence_active(hits: torch.Tensor, free: torch.Tensor, config: EvidenceConf
 
 @torch.no_grad()
 def observe_frame(voxel_map: VoxelMap, frame: FrameData, T_world_cam: torch.Tensor, points_world: torch.Tensor,
-                  config: EvidenceConfig, point_weight: float = 1.0) -> EvidenceUpdate:
+                  config: EvidenceConfig, point_weight: float = 1.0,
+                  point_voxels: torch.Tensor | None = None) -> EvidenceUpdate:
     """Add one posed frame's evidence to ``voxel_map`` and update its active mask.
 
     Call after the frame's points were allocated.
@@ -228,11 +229,16 @@ def observe_frame(voxel_map: VoxelMap, frame: FrameData, T_world_cam: torch.Tens
             allocation points.
         config: :class:`EvidenceConfig`.
         point_weight: pixels each point stands for (``alloc_stride**2``).
+        point_voxels: ``[N]`` int64 the allocated voxel of each point (-1: none) when the caller has looked
+            them up already (:meth:`~.voxels.VoxelMap.locate_surface_points`); None: looked up here.
     """
     if points_world.dim() != 2 or points_world.shape[-1] != 3:
         raise ShapeError("points_world", tuple(points_world.shape), "[N, 3]")
-    hit_idx = voxel_map.lookup_allocated_cells(voxel_map.points_to_voxel_coords(points_world))
-    hit_idx = hit_idx[hit_idx >= 0]
+    if point_voxels is None:
+        point_voxels = voxel_map.lookup_allocated_cells(voxel_map.points_to_voxel_coords(points_world))
+    elif point_voxels.shape != points_world.shape[:1]:
+        raise ShapeError("point_voxels", tuple(point_voxels.shape), f"[{points_world.shape[0]}]")
+    hit_idx = point_voxels[point_voxels >= 0]
     stride = config.ray_stride_px(frame.height, frame.width)
     free_idx = free_space_voxels(voxel_map, frame.depth_m, frame.K, T_world_cam, stride, config.margin_m,
                                  config.sample_step_ratio * voxel_map.voxel_size_m)

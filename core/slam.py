@@ -42,7 +42,7 @@ from .frame_checks import MIN_INIT_VALID_PIXELS, intrinsics_problem, usable_pose
 from .framedata import FrameData, frame_to_device
 from .geometry import invert_pose, nearest_rigid
 from .host_memory import retain_freed_memory
-from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper
+from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper, publish_keyframe_poses
 from .mesh import extract_map_mesh
 from .mesh.frame import WorldAxes, camera_up_forward
 from .optim import preload as preload_optimizer
@@ -275,8 +275,7 @@ class SlamSystem:
         stream = self._streams.get("mapping")
         voxels = m.voxels.snapshot()
         decoder = copy.deepcopy(m.decoder).requires_grad_(False)
-        for kf in m.keyframes:  # other threads read keyframe poses from these copies only
-            kf.publish_pose()
+        publish_keyframe_poses(m.keyframes)  # other threads read keyframe poses from these copies only
         if stream is not None:
             stream.synchronize()
         snap = MapSnapshot(voxels, decoder, m.version, tuple(m.keyframes))

@@ -9,7 +9,7 @@ from .morton import (
     morton_decode,
     morton_encode,
 )
-from .voxel_map import SURFACE_CELLS, MemoryReport, VoxelMap
+from .voxel_map import SURFACE_CELLS, MemoryReport, SurfacePoints, VoxelMap
 
 __all__ = [
     "MORTON_BITS",
@@ -22,4 +22,5 @@ __all__ = [
     "MemoryReport",
     "VoxelMap",
     "SURFACE_CELLS",
+    "SurfacePoints",
 ]

@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 import weakref
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -74,6 +74,16 @@ SURFACE_CELLS = 16
 _SURFACE_BYTES = SURFACE_CELLS**3 // 8
 _FAR_CELL = float(1 << 40)
 """A surface-cell coordinate no voxel reaches (the Morton range is ~2^20 voxels of 16 cells)."""
+
+
+class SurfacePoints(NamedTuple):
+    """Posed depth points located in a map (:meth:`VoxelMap.locate_surface_points`): ``voxel_idx [N]`` int64
+    allocated voxel of each point (-1: none), ``cell [N]`` int64 its surface cell within that voxel
+    (``(x * SURFACE_CELLS + y) * SURFACE_CELLS + z``), and the map's voxel count when located."""
+
+    voxel_idx: torch.Tensor
+    cell: torch.Tensor
+    n_voxels: int
 
 
 @dataclass(frozen=True)
@@ -550,15 +560,15 @@ class VoxelMap:
             tables.append(table)
         self._voxel_hits, self._voxel_free = tables
 
-    def add_surface_points(self, points_world: torch.Tensor) -> int:
-        """Mark the surface cells (:data:`SURFACE_CELLS` per voxel edge) that hold observed depth points.
+    def locate_surface_points(self, points_world: torch.Tensor) -> SurfacePoints:
+        """Where posed depth points fall: their allocated voxel (active or not) and surface cell in it
+        (:class:`SurfacePoints`), for :meth:`add_surface_points`; the voxels also serve as the points' hit
+        voxels for the free-space evidence (:func:`~..evidence.observe_frame`), so a frame looks its points up
+        once.
 
         Args:
-            points_world: ``[N, 3]`` float world points in metres (posed depth points). Points outside
-                every allocated voxel are ignored.
-
-        Returns the number of cells newly marked. The mask is replaced, never updated in place, so
-        snapshots keep their own.
+            points_world: ``[N, 3]`` float world points in metres. Non-finite points and points outside every
+                allocated voxel get voxel -1.
         """
         if not isinstance(points_world, torch.Tensor) or points_world.dim() != 2 or points_world.shape[1] != 3:
             raise ShapeError("points_world", tuple(getattr(points_world, "shape", ())), "[N, 3]")
@@ -567,9 +577,26 @@ class VoxelMap:
         cells = torch.nan_to_num(torch.floor(pts * (SURFACE_CELLS / self.voxel_size_m)), nan=_FAR_CELL,
                                  posinf=_FAR_CELL, neginf=_FAR_CELL).clamp(-_FAR_CELL, _FAR_CELL).to(torch.int64)
         ijk = torch.div(cells, SURFACE_CELLS, rounding_mode="floor")
-        idx = self.lookup_allocated_cells(ijk)
         local = cells - ijk * SURFACE_CELLS
         bit = (local[:, 0] * SURFACE_CELLS + local[:, 1]) * SURFACE_CELLS + local[:, 2]  # cell in its voxel
+        return SurfacePoints(self.lookup_allocated_cells(ijk), bit, self.n_voxels)
+
+    def add_surface_points(self, points: torch.Tensor | SurfacePoints) -> int:
+        """Mark the surface cells (:data:`SURFACE_CELLS` per voxel edge) that hold observed depth points.
+
+        Args:
+            points: ``[N, 3]`` float world points in metres (posed depth points), or the same points already
+                located (:meth:`locate_surface_points`, since the last allocation). Points outside every
+                allocated voxel are ignored.
+
+        Returns the number of cells newly marked. The mask is replaced, never updated in place, so
+        snapshots keep their own.
+        """
+        located = points if isinstance(points, SurfacePoints) else self.locate_surface_points(points)
+        if located.n_voxels != self.n_voxels:
+            raise ValidationError("points", f"located in a map of {located.n_voxels} voxels, the map has "
+                                  f"{self.n_voxels} now: locate them again after allocating")
+        idx, bit = located.voxel_idx, located.cell
         # the voxels the points fall in, numbered 0..T-1: the frame's cells become flags over those T voxels only
         # (the frame's footprint, whatever the map's size), packed into the mask's bytes; no sort and no unique
         # over the points

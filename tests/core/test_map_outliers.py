@@ -211,7 +211,11 @@ def test_evidence_deactivates_barely_observed_voxel_and_keeps_the_wall():
     wall = vm.lookup_voxels(pts[pts[:, 2] > 2.0]).unique()
     assert (free == blob).sum() > 500  # most rays crossed the blob's voxel on their way to the wall
     assert not torch.isin(wall, free).any()  # the wall's own voxels are never free space
+    twin = VoxelMap.from_state_dict(vm.state_dict())
     update = observe_frame(vm, data, T, pts, cfg)
+    # the same update from the points' voxels looked up by the caller (the mapper's one lookup per frame)
+    assert observe_frame(twin, data, T, pts, cfg, point_voxels=twin.locate_surface_points(pts).voxel_idx) == update
+    assert torch.equal(twin.voxel_hits, vm.voxel_hits) and torch.equal(twin.voxel_active, vm.voxel_active)
     assert update.n_inactive == 1 and not vm.voxel_active[blob] and vm.voxel_active[wall].all()
     assert update.hit_px == pytest.approx(160 * 120)
     # enough later hits (the object seen up close) bring it back

@@ -231,3 +231,31 @@ def test_band_samples_is_validated_and_defaults_to_the_renderers_spacing():
     assert load_preset("cpu", []).mapping.band_samples == 5
     with pytest.raises(ConfigError, match="band_samples"):
         load_preset("cpu", ["mapping.band_samples=0"])
+
+
+def test_published_keyframe_poses_follow_every_trained_keyframe_and_skip_the_others():
+    """After mapping rounds that refine keyframe poses (fused Adam updates the corrections in place), every
+    keyframe's published pose is its current pose; a publish with nothing moved recomputes nothing (the same
+    arrays), and one after a round recomputes only the keyframes that round trained."""
+    from voxfusion.core.mapping import publish_keyframe_poses
+
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=2", "mapping.iters=3",
+                                           "mapping.keyframe_max_interval=1", "mapping.window_keyframes=1"])
+    cap = SyntheticCapture(SyntheticConfig(n_frames=5, width=48, height=36))
+    m = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu")
+    for f in cap.frames():
+        m.integrate(frame_to_device(f, "cpu"), f.T_world_cam)
+        publish_keyframe_poses(m.keyframes)
+    assert len(m.keyframes) == 5
+    moved = [kf for kf in m.keyframes if float(kf.delta.detach().abs().max()) > 1e-6]
+    assert moved and not m.keyframes[0].delta.detach().any()  # poses were refined; the first stays fixed
+    for kf in m.keyframes:
+        np.testing.assert_allclose(kf.published_pose(), kf.T_world_cam.numpy(), rtol=0, atol=1e-12)
+    before = [kf.published for kf in m.keyframes]
+    publish_keyframe_poses(m.keyframes)
+    assert all(kf.published is b for kf, b in zip(m.keyframes, before, strict=True))
+    window = [m.keyframes[0], m.keyframes[2]]
+    m.step(window)
+    publish_keyframe_poses(m.keyframes)
+    assert [kf.published is b for kf, b in zip(m.keyframes, before, strict=True)] == [True, True, False, True, True]
+    np.testing.assert_allclose(m.keyframes[2].published_pose(), m.keyframes[2].T_world_cam.numpy(), atol=1e-12)

@@ -7,9 +7,11 @@ import io
 import json
 
 import numpy as np
+import pytest
 import torch
 import trimesh
 
+from voxfusion.core.errors import ValidationError
 from voxfusion.core.eval import read_mesh_frame
 from voxfusion.core.evidence import EvidenceConfig, evidence_active
 from voxfusion.core.mesh import SurfaceSupport, export_mesh, extract_mesh, mesh_bytes
@@ -53,6 +55,18 @@ def test_surface_mask_marks_cells_counts_and_survives_a_checkpoint():
     # and the mask holds exactly the cells of every point added (each bit where it belongs)
     expected |= {tuple(c) for c in np.floor(cloud.numpy() / cell).astype(int).tolist()}
     assert {tuple(c) for c in vmap.surface_cells().tolist()} == expected
+    # located first (the mapper looks a frame's points up once for the mask and the evidence): the same marks;
+    # points located before an allocation are refused, not marked in the wrong voxels
+    more = torch.rand(300, 3, generator=rng, dtype=torch.float64) * 0.6 + torch.tensor([-0.2, -0.2, 0.8])
+    twin = VoxelMap.from_state_dict(vmap.state_dict())
+    located = twin.locate_surface_points(more)
+    assert torch.equal(located.voxel_idx, twin.lookup_voxels(more)) and int((located.cell >= 0).sum()) == 300
+    assert twin.add_surface_points(located) == vmap.add_surface_points(more) > 0
+    assert torch.equal(twin.voxel_surface, vmap.voxel_surface)
+    stale = twin.locate_surface_points(more + 1.0)
+    twin.allocate(more + 1.0)
+    with pytest.raises(ValidationError, match="points"):
+        twin.add_surface_points(stale)
     old = vmap.state_dict()
     del old["voxel_surface"]
     legacy = VoxelMap.from_state_dict(old)
