@@ -91,6 +91,12 @@ class MappingConfig:
     front of the truncation band, the band itself in ``band_samples`` strata) - fixed shapes, no host
     synchronisation. ``voxels``: the paper's sampler, every ``step`` along the allocated voxels the ray
     crosses up to the depth plus the truncation (:func:`~.render.render_rays`), the reference."""
+    compact_samples: bool | None = None
+    """``band`` sampler: evaluate the field only at the samples inside allocated voxels (the others get no
+    weight and no loss either way; :func:`~.render.render_band`'s ``compact``): True reads their count back
+    once per iteration (free on a CPU; on the synthetic room ~30 % of the samples are outside the map, and a
+    CPU mapping iteration ran ~20 % faster), False keeps every shape fixed and nothing waiting for the host
+    (CUDA graphs). None: True on a CPU, False elsewhere."""
     free_samples: int = 6
     """``band`` sampler: free-space samples per ray (the ``voxels`` sampler averaged ~6 on the synthetic room)."""
     free_range_voxels: float = 2.0
@@ -394,7 +400,8 @@ class Mapper:
         if self.config.sampler == "band":
             out = render_band(self.voxels, self.decoder, o, d, depth_gt, self.render_config,
                               self.config.free_samples, self.config.free_range_voxels * self.voxels.voxel_size_m,
-                              training=True, generator=self.generator, n_band=self.config.band_samples)
+                              training=True, generator=self.generator, n_band=self.config.band_samples,
+                              compact=self.config.compact_samples)
         else:
             t_far = depth_gt + self.render_config.truncation_m
             out = render_rays(self.voxels, self.decoder, o, d, self.render_config, training=True,

@@ -356,18 +356,25 @@ def band_samples(depth: torch.Tensor, dir_norm: torch.Tensor, n_band: int, n_fre
 def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torch.Tensor, dirs: torch.Tensor,
                 depth: torch.Tensor, config: RenderConfig, n_free: int, free_range_m: float,
                 training: bool = True, generator: torch.Generator | None = None,
-                n_band: int | None = None) -> RenderOutput:
+                n_band: int | None = None, compact: bool | None = None) -> RenderOutput:
     """Render rays of known depth from a fixed number of samples per ray (:func:`band_samples`): the
     mapping renderer. Same compositing and outputs as :func:`render_rays`, but every shape is fixed by
     ``N`` and the config (``n_band``, default ``ceil(2 tr / step)``, keeps :func:`render_rays`' sample spacing
-    in the band) and nothing waits for the host: samples outside allocated voxels are evaluated at a clamped
-    voxel index and masked, not compacted, so a step can be captured (CUDA graphs, ``torch.compile``).
+    in the band).
+
+    Samples outside allocated voxels get no weight and no loss, so their field values are never used. With
+    ``compact`` False they are evaluated anyway, at a clamped voxel index, and masked: nothing waits for the
+    host, so a step can be captured (CUDA graphs, ``torch.compile``). With ``compact`` True only the samples
+    inside the map are evaluated (their count is read back: free on a CPU, a wait on a GPU) and scattered
+    into place; on the synthetic room ~30 % of a mapping iteration's samples (two thirds of the free-space
+    ones) are outside the map. Both give the same output and gradients (tested). None: compact on a CPU.
 
     Args:
         field: an :class:`~.field.SDFDecoder` over ``voxel_map`` or any :data:`~.field.SDFField`.
         depth: ``[N]`` observed depth in t-units (> 0 for every ray).
         n_free, free_range_m: free-space strata and the metres in front of the band they cover.
         n_band: strata inside the band (None: the renderer's step, ``config.step_ratio``).
+        compact: evaluate only the samples inside the map (above; None: on a CPU).
     """
     if origins.dim() != 2 or origins.shape[1] != 3:
         raise ShapeError("origins", tuple(origins.shape), "[N, 3]")
@@ -391,10 +398,16 @@ def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torc
         return composite(zeros, None, t, mask, dn, mask.any(1), config)
     idx = voxel_map.lookup_voxels(flat.detach())
     mask = (idx >= 0).reshape(n, s)
-    if isinstance(field, SDFDecoder):
-        sdf, rgb = NeuralField(voxel_map, field).evaluate_unchecked(flat, idx.clamp(min=0))
-    else:  # any SDFField (tests: analytic surfaces); it must accept points outside the map too
-        sdf, rgb = field(flat, idx.clamp(min=0))
+    evaluate = NeuralField(voxel_map, field).evaluate_unchecked if isinstance(field, SDFDecoder) else field
+    if compact is None:
+        compact = flat.device.type == "cpu"
+    if compact:
+        inside = torch.nonzero(idx >= 0).squeeze(1)  # the one read-back: the count of samples inside the map
+        sdf_in, rgb_in = evaluate(flat[inside], idx[inside])
+        sdf = sdf_in.new_zeros(n * s).index_copy(0, inside, sdf_in)
+        rgb = None if rgb_in is None else rgb_in.new_zeros(n * s, 3).index_copy(0, inside, rgb_in)
+    else:  # an SDFField must then accept points outside the map too (tests: analytic surfaces)
+        sdf, rgb = evaluate(flat, idx.clamp(min=0))
     sdf = sdf.reshape(n, s)
     rgb = rgb.reshape(n, s, 3) if rgb is not None else None
     return composite(sdf, rgb, t, mask, dn, mask.any(1), config)

@@ -528,3 +528,34 @@ def test_band_renderer_on_an_empty_map_renders_nothing():
     o, d = camera_rays(K_TEST, torch.eye(4), pixels_uv=torch.tensor([[15.5, 11.5]]))
     out = render_band(VoxelMap(0.2), SDFDecoder(), o, d, torch.tensor([2.0]), RenderConfig(), 6, 0.4)
     assert not out.hit.any() and out.depth.tolist() == [0.0]
+
+
+def test_band_renderer_evaluates_only_samples_inside_the_map_with_the_same_results():
+    """``compact`` (the CPU default: only samples inside allocated voxels go through the field) against the
+    fixed-shape path that evaluates every sample and masks: the same outputs and the same gradients of a
+    training loss for the embeddings, the decoder and the rays, on rays whose free-space samples mostly
+    leave the map."""
+    from voxfusion.core.losses import compute_losses
+    from voxfusion.core.render import render_band
+
+    vm = _band_map(plane_sdf, 0.2, 0.4, 0.15)  # a thin sheet of voxels around z = 2
+    torch.manual_seed(0)
+    dec = SDFDecoder()
+    pix = torch.rand(64, 2, generator=torch.Generator().manual_seed(1)) * torch.tensor([31.0, 23.0])
+    depth = 2.0 + 0.05 * torch.rand(64, generator=torch.Generator().manual_seed(2))
+    color = torch.rand(64, 3, generator=torch.Generator().manual_seed(3))
+    results = []
+    for compact in (True, False):
+        o, d = camera_rays(K_TEST, torch.eye(4), pixels_uv=pix)
+        o.requires_grad_(True)
+        vm.embeddings.grad = None
+        dec.zero_grad(set_to_none=True)
+        out = render_band(vm, dec, o, d, depth, RenderConfig(), n_free=6, free_range_m=2.0, training=True,
+                          generator=torch.Generator().manual_seed(0), compact=compact)
+        compute_losses(out, depth, color).total.backward()
+        results.append([out.depth, out.color, out.sdf, out.weights, vm.embeddings.grad.clone(), o.grad,
+                        *[p.grad for p in dec.parameters()]])
+    inside = float(out.sample_mask.float().mean())
+    assert 0.2 < inside < 0.9  # both kinds of samples are there
+    for got, want in zip(*results, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
