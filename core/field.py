@@ -166,7 +166,6 @@ class SDFDecoder(nn.Module):
             sdf_raw, rgb = _run_mlp(self.sdf_net, color_net, x, self.config.compile)
         return sdf_raw.float() * self.config.sdf_scale_m, None if rgb is None else rgb.float()
 
-
     @property
     def has_plain_gradient(self) -> bool:
         """Whether :meth:`sdf_and_input_gradient` applies: the float32 eager MLP on the embedding alone (no
