@@ -149,7 +149,9 @@ class TrackingConfig:
     cpu_threads: int = 1
     """Intra-op CPU threads while tracking in offline mode (0: leave torch's setting). The tracker's operations
     are small (a few thousand points), so thread wake-ups outweigh the work: on the 2-core development CPU the
-    sdf tracker took ~130 ms per frame with two threads and ~80 ms with one."""
+    sdf tracker took ~130 ms per frame with two threads and ~80 ms with one. On the 2-core Intel Xeon the project
+    moved to, two threads were faster (2026-11-24, synthetic room: 14.0 against 16.3 ms per frame); the default
+    stays 1 until both kinds of CPU can be measured again."""
     refine_iters: int = 0
     """``sdf`` method: iterations of the render tracker run after it (0: none)."""
     loss: LossConfig = field(default_factory=LossConfig)
