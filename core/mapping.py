@@ -135,7 +135,7 @@ class Keyframe:
 
     Threads: ``delta`` is updated in place by the mapping thread's optimiser; other threads read
     :meth:`published_pose`, a copy the mapping thread swaps in whole with each published map
-    (:meth:`publish_pose`), never the parameter itself.
+    (:func:`publish_keyframe_poses`), never the parameter itself.
     """
 
     data: FrameData
@@ -161,11 +161,6 @@ class Keyframe:
     def T_world_cam(self) -> torch.Tensor:
         """Current pose, detached (the mapping thread's view; other threads use :meth:`published_pose`)."""
         return self.pose().detach()
-
-    def publish_pose(self) -> None:
-        """Copy the current pose for other threads (called by the thread that optimises ``delta``);
-        :func:`publish_keyframe_poses` of this keyframe alone."""
-        publish_keyframe_poses([self])
 
     def published_pose(self) -> np.ndarray:
         """``[4, 4]`` float64 pose as of the last published map (the tracked pose before the first)."""
