@@ -24,9 +24,11 @@ points, moved into the world with the right pose, must sit on its zero level set
   convergence test below, the only read-back is one per frame, at the end);
 * coarse to fine: ``levels`` rounds with 4x fewer points per coarser level;
 * a level ends after ``iters`` iterations, or earlier once the next proposed step would move less than
-  ``converge_tol`` (metres and radians, largest component; that step is then not evaluated): the test is
-  read back every ``check_every`` iterations, so on a GPU the loop waits for the device at most once per
-  ``check_every`` steps (on a CPU a read-back costs nothing and 1 is right).
+  ``converge_tol`` (metres and radians, largest component; that step is then not evaluated) at the finest
+  level, ``coarse_converge_tol`` at the coarser ones (they only have to bring the pose into the finest
+  level's reach; the finest level polishes it): the test is read back every ``check_every`` iterations, so
+  on a GPU the loop waits for the device at most once per ``check_every`` steps (on a CPU a read-back costs
+  nothing and 1 is right).
 
 Everything is float32 on the map's device except poses and the normal equations (float64). The device
 prior (ARKit motion) enters as a Gaussian on the accumulated correction ``xi`` (first order: the sum of
@@ -59,7 +61,10 @@ class SdfSolverConfig:
     iters: int = 6
     """Levenberg-Marquardt iterations per level at most (each one field evaluation + one backward pass)."""
     converge_tol: float = 0.0
-    """A level ends once a proposed step's largest component is below this (m / rad); 0: always ``iters``."""
+    """The finest level ends once a proposed step's largest component is below this (m / rad); 0: always
+    ``iters`` (and no read-back at any level)."""
+    coarse_converge_tol: float | None = None
+    """The same test at the coarser levels (None: ``converge_tol``)."""
     check_every: int = 1
     """Read the convergence test back every this many iterations (each read-back waits for the device)."""
     huber_m: float = 0.01
@@ -323,7 +328,9 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
     r = ok = None
     cost_best = torch.zeros((), dtype=torch.float64, device=dev)
     iterations = 0
-    for pts in levels:
+    for level, pts in enumerate(levels):
+        finest = level == len(levels) - 1
+        tol = cfg.converge_tol if finest or cfg.coarse_converge_tol is None else cfg.coarse_converge_tol
         # the prior's weight is per point of the data term's mean, so it does not depend on N
         def evaluate(T: torch.Tensor, xi: torch.Tensor, pts: SdfPoints = pts) -> tuple[torch.Tensor, ...]:
             cost, H, b, r, ok = linearize(voxels, decoder, pts, T, cfg, reference)
@@ -340,7 +347,7 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
             delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
             # converged: the next step would move the pose less than the tolerance (not worth an evaluation)
             if cfg.converge_tol > 0 and (it - 1) % cfg.check_every == 0 \
-                    and float(delta.abs().max()) < cfg.converge_tol:
+                    and float(delta.abs().max()) < tol:
                 break
             T_c = perturb_right(T_best, delta)
             xi_c = xi_acc + delta

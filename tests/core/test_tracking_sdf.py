@@ -7,6 +7,7 @@ import torch
 
 from voxfusion.core.datasets import open_capture
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
+from voxfusion.core.errors import ConfigError
 from voxfusion.core.framedata import FrameData, frame_to_device
 from voxfusion.core.lie import perturb_right, se3_exp
 from voxfusion.core.reconstruct import make_mapper
@@ -197,6 +198,26 @@ def test_sdf_tracker_stops_once_converged(room):
                          check_every=5).track(data, prior)
     assert sparse.iterations in {a + b for a in (0, 5, 8) for b in (0, 5, 8)}, sparse.iterations
     assert sparse.iterations >= early.iterations
+
+
+def test_sdf_tracker_coarse_levels_stop_at_their_own_tolerance(room):
+    """``sdf_coarse_converge_tol`` ends the coarser levels (0: they run every iteration); the finest level
+    still polishes the pose to ``sdf_converge_tol``, so a loose coarse tolerance ends near the same pose."""
+    cap, cfg, mapper = room
+    f = cap[7]
+    data, prior = frame_to_device(f, "cpu"), perturb(f.T_world_cam)
+
+    def track(coarse_tol: float):  # noqa: ANN202
+        return tracker_for(cfg, mapper, method="sdf", sdf_iters=8, sdf_converge_tol=1e-4, check_every=1,
+                           sdf_coarse_converge_tol=coarse_tol).track(data, prior)
+
+    tight, loose, never = track(1e-4), track(3e-3), track(0.0)
+    assert never.iterations >= 8  # the coarse level ran all its iterations
+    assert loose.iterations < tight.iterations < never.iterations + 8
+    dt, da = pose_error(loose.T_world_cam, tight.T_world_cam)
+    assert dt < 1e-3 and da < 0.05, (dt, da)
+    with pytest.raises(ConfigError, match="sdf_coarse_converge_tol"):
+        TrackingConfig(sdf_coarse_converge_tol=-1.0)
 
 
 @pytest.mark.parametrize("method", ["sdf", "render"])
