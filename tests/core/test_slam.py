@@ -124,9 +124,9 @@ def test_motion_models():
     np.testing.assert_allclose(predict_pose(T2, T1, TrackingConfig(use_device_prior=False), D1, D2), cv)
 
 
-def run_offline(capture, seed):
-    slam = SlamSystem(load_preset("cpu-small", TINY + [f"seed={seed}"]))
-    for f in capture.frames(0, 5):
+def run_offline(capture, seed, extra=(), n_frames=5):
+    slam = SlamSystem(load_preset("cpu-small", TINY + [f"seed={seed}", *extra]))
+    for f in capture.frames(0, n_frames):
         slam.process(f)
     slam.finish()
     return slam
@@ -311,3 +311,51 @@ def test_building_the_engine_imports_what_the_first_frames_optimisers_need():
             "assert 'torch._dynamo' in sys.modules\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
+
+
+def test_a_frame_between_two_keyframes_blends_their_corrections_by_time(capture):
+    """Keyframe refinements reach the frames between two keyframes as a time-weighted blend of both keyframes'
+    corrections: none of the later one's at the earlier keyframe, all of it at the later one, so the
+    trajectory does not jump at a keyframe."""
+    from voxfusion.core.mapping import Keyframe, publish_keyframe_poses
+    from voxfusion.core.slam import FrameRecord
+
+    frames = list(capture.frames(0, 2))
+    data = [frame_to_device(f, "cpu") for f in frames]
+    t0, t1 = data[0].timestamp_s, data[1].timestamp_s
+    base_a, base_b = np.eye(4), np.eye(4)
+    base_b[:3, 3] = (0.1, 0.0, 0.0)
+    kf_a = Keyframe.create(data[0], torch.as_tensor(base_a))
+    kf_b = Keyframe.create(data[1], torch.as_tensor(base_b))
+
+    def record(t: float) -> FrameRecord:  # tracked at pose x = 0.05 m, attached to kf_a before any refinement
+        T = np.eye(4)
+        T[:3, 3] = (0.05, 0.0, 0.0)
+        return FrameRecord(0, t, T, ref_keyframe=kf_a, T_ref_frame=np.linalg.inv(kf_a.published_pose()) @ T,
+                           next_keyframe=kf_b)
+
+    recs = [record(t0), record(0.5 * (t0 + t1)), record(t1)]
+    # refinements: keyframe a moves 1 cm along y, keyframe b 2 cm along z (translations in their camera frames,
+    # here the world's: both bases are unrotated)
+    kf_a.delta.data = torch.tensor([0, 0.01, 0, 0, 0, 0], dtype=torch.float64)
+    kf_b.delta.data = torch.tensor([0, 0, 0.02, 0, 0, 0], dtype=torch.float64)
+    kf_a.pose_changed = kf_b.pose_changed = True
+    publish_keyframe_poses([kf_a, kf_b])
+    expected = [(0.05, 0.01, 0.0), (0.05, 0.005, 0.01), (0.05, 0.0, 0.02)]
+    for rec, xyz in zip(recs, expected, strict=True):
+        np.testing.assert_allclose(rec.current_pose()[:3, 3], xyz, atol=1e-9)
+        np.testing.assert_allclose(rec.current_pose()[:3, :3], np.eye(3), atol=1e-9)
+    recs[1].next_keyframe = None  # after the newest keyframe: that keyframe's correction alone
+    np.testing.assert_allclose(recs[1].current_pose()[:3, 3], (0.05, 0.01, 0.0), atol=1e-9)
+
+
+def test_offline_run_links_each_frame_to_the_keyframe_after_it(capture):
+    """Every frame between two keyframes knows the later one; frames after the newest keyframe know none."""
+    slam = run_offline(capture, 0, extra=["mapping.keyframe_max_interval=2"], n_frames=8)
+    kf_at = [i for i, r in enumerate(slam.records) if r.keyframe is not None]
+    assert len(kf_at) >= 3, kf_at
+    for i, r in enumerate(slam.records):
+        if r.keyframe is not None or r.ref_keyframe is None:
+            continue
+        later = [k for k in kf_at if k > i]
+        assert (r.next_keyframe is slam.records[later[0]].keyframe) if later else r.next_keyframe is None, i
