@@ -108,8 +108,7 @@ class FrameRecord:
             return nearest_rigid(T)
         t0, t1 = self.ref_keyframe.data.timestamp_s, nxt.data.timestamp_s
         a = min(max((self.timestamp_s - t0) / (t1 - t0), 0.0), 1.0) if t1 > t0 else 1.0
-        T_tracked_inv = invert_pose(self.T_tracked)
-        C_ref = T @ T_tracked_inv
+        C_ref = T @ invert_pose(self.T_tracked)
         C_next = nxt.published_pose() @ invert_pose(nxt.T_base.cpu().numpy())
         return nearest_rigid(C_ref @ scale_motion(invert_pose(C_ref) @ C_next, a) @ self.T_tracked)
 

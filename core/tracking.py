@@ -124,8 +124,8 @@ class TrackingConfig:
     3e-4, ATE 1.31 cm either way)."""
     sdf_coarse_converge_tol: float = 3e-3
     """``sdf`` method: the same test at the coarser levels (3e-3 = 3 mm / 0.17 deg). They only have to bring
-    the pose within the finest level's reach, which polishes it to ``sdf_converge_tol``; at that tolerance
-    they spent about a third of the tracker's evaluations on steps the finest level redoes. Measured on the
+    the pose within the finest level's reach, which polishes it to ``sdf_converge_tol``; held to that
+    tolerance too, the coarse level took ~40 % of the tracker's time on the synthetic room. Measured on the
     2-core Intel Xeon, `cpu` sizes, same seeds (3e-4 -> 3e-3): tracking 13.8 -> 12.5 ms per frame on the
     synthetic room (seed 1), ATE within the float-rounding spread of a run (synthetic room 0.18 / 0.29 /
     0.26 -> 0.16 / 0.30 / 0.23 cm, fast rotation 0.44 / 0.45 / 0.40 -> 0.43 / 0.43 / 0.41)."""
