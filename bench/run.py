@@ -237,6 +237,7 @@ class _RecordingCapture(BaseCapture):
         self.capture = capture
         self.name = capture.name
         self.path = Path(capture.path)
+        self._profile = capture.profile  # what the reader knows (kind, depth range, colour registration)
         self.reference: dict[int, tuple[float, np.ndarray | None]] = {}
 
     def __len__(self) -> int:

@@ -240,9 +240,11 @@ def profile_overrides(profile: CaptureProfile) -> dict:
     * ``max_depth_m`` -> ``mapping.max_depth_m`` (depth beyond is dropped);
     * ``has_confidence`` -> ``mapping.min_confidence: 1`` (low-confidence pixels dropped);
     * no colour -> ``loss.w_color: 0``; colour not registered to depth -> ``loss.w_color``
-      :data:`UNREGISTERED_COLOR_WEIGHT`.
+      :data:`UNREGISTERED_COLOR_WEIGHT` and ``tracking.sdf_w_photo: 0`` (a pixel's colour would not be its
+      depth point's).
 
-    Example: a 7-Scenes capture -> ``{"mapping": {"max_depth_m": 4.0}, "loss": {"w_color": 0.1}}``.
+    Example: a 7-Scenes capture -> ``{"mapping": {"max_depth_m": 4.0}, "loss": {"w_color": 0.1},
+    "tracking": {"sdf_w_photo": 0.0}}``.
     """
     mapping: dict = {}
     out: dict = {}
@@ -256,6 +258,7 @@ def profile_overrides(profile: CaptureProfile) -> dict:
         out["loss"] = {"w_color": 0.0}
     elif not profile.color_registered:
         out["loss"] = {"w_color": UNREGISTERED_COLOR_WEIGHT}
+        out["tracking"] = {"sdf_w_photo": 0.0}
     return out
 
 

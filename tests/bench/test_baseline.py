@@ -224,6 +224,23 @@ def test_run_py_runs_voxfusion_beside_the_baseline(tmp_path):
     assert result["methods"]["voxfusion"]["ate_aligned"]["rmse_m"] < 0.05
 
 
+def test_run_py_picks_the_preset_voxfusion_run_picks():
+    """The harness's frame recorder passes the reader's profile on, so voxfusion gets the preset and capture
+    facts `voxfusion run` would (it once saw an unknown capture and ran every real one with `cpu`)."""
+    import argparse
+
+    from bench.run import _RecordingCapture, _voxfusion_config
+    from voxfusion.core.slam_config import preset_for
+
+    capture = SyntheticCapture(SyntheticConfig(n_frames=2, width=48, height=36))
+    recorder = _RecordingCapture(capture)
+    assert recorder.profile == capture.profile and capture.profile.kind == "synthetic"
+    name, config = _voxfusion_config(argparse.Namespace(vf_set=None, vf_config=None), recorder)
+    expected = preset_for(capture)
+    assert name == expected.preset and name.startswith("synthetic")
+    assert config == expected.config
+
+
 def test_real_tum_capture(shared_data):
     from voxfusion.core.datasets import open_capture
 

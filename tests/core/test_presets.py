@@ -106,7 +106,8 @@ def test_server_names_never_paths():
 
 def test_profile_facts_become_settings():
     assert profile_overrides(TYPICAL["sevenscenes"]) == {"mapping": {"max_depth_m": 4.0},
-                                                         "loss": {"w_color": UNREGISTERED_COLOR_WEIGHT}}
+                                                         "loss": {"w_color": UNREGISTERED_COLOR_WEIGHT},
+                                                         "tracking": {"sdf_w_photo": 0.0}}
     assert profile_overrides(TYPICAL["iphone"]) == {"mapping": {"max_depth_m": 5.0, "min_confidence": 1},
                                                     "loss": {"w_color": 0.0}}
     assert profile_overrides(CaptureProfile()) == {}
@@ -117,6 +118,8 @@ def test_profile_facts_lie_under_presets_and_overrides():
     assert (scannet.loss.w_color, scannet.mapping.max_depth_m) == (0.2, 5.0)  # the preset's own weight wins
     cfg = load_preset("sevenscenes+cpu", ["mapping.max_depth_m=3.5"], profile=TYPICAL["sevenscenes"])
     assert (cfg.loss.w_color, cfg.mapping.max_depth_m) == (UNREGISTERED_COLOR_WEIGHT, 3.5)
+    assert cfg.tracking.sdf_w_photo == 0.0  # unregistered colour: no photometric tracking term
+    assert load_preset("tum+cpu", profile=TYPICAL["tum"]).tracking.sdf_w_photo > 0
 
 
 @pytest.mark.parametrize("kind", list(TYPICAL))

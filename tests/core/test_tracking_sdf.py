@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from voxfusion.core.datasets import open_capture
+from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import ConfigError
 from voxfusion.core.framedata import FrameData, frame_to_device
@@ -13,7 +14,14 @@ from voxfusion.core.lie import perturb_right, se3_exp
 from voxfusion.core.reconstruct import make_mapper
 from voxfusion.core.slam_config import load_preset
 from voxfusion.core.tracking import Tracker, TrackingConfig, masked_median
-from voxfusion.core.tracking_sdf import SdfSolverConfig, depth_reference, frame_residuals, linearize, sample_points
+from voxfusion.core.tracking_sdf import (
+    SdfSolverConfig,
+    depth_reference,
+    frame_residuals,
+    linearize,
+    photometric_residuals,
+    sample_points,
+)
 
 TINY = ["device=cpu", "mapping.map_every=1", "mapping.rays_per_frame=192", "mapping.iters=8",
         "mapping.first_frame_iters=40", "field.sdf_hidden=64", "field.color_hidden=64"]
@@ -154,6 +162,99 @@ def test_frame_term_sharpens_tracking_on_a_coarse_map():
         errors[w] = pose_error(res.T_world_cam, f.T_world_cam)
     assert errors[2.0][0] < 0.004 and errors[2.0][1] < 0.2, errors
     assert errors[2.0][0] < 0.5 * errors[0.0][0], errors
+
+
+def wall_frame(t_cam, h=72, w=96, f=80.0, wall_z=2.07):
+    """An RGB-D frame of the textured wall ``Z = wall_z`` (world; not on a voxel face) seen by a camera moved
+    by ``t_cam`` (no rotation; OpenCV axes, so the camera looks along +Z). The wall's gray level is a smooth checker of
+    period 0.3 m in world X and Y (~12 pixels): depth alone cannot tell where along the wall the camera is."""
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = np.full((h, w), wall_z - t_cam[2])
+    X = (u - K[0, 2]) / f * z + t_cam[0]
+    Y = (v - K[1, 2]) / f * z + t_cam[1]
+    gray = 0.5 + 0.35 * np.sin(2 * np.pi * X / 0.3) * np.sin(2 * np.pi * Y / 0.3)
+    color = np.repeat((gray * 255).round().astype(np.uint8)[..., None], 3, -1)
+    T = np.eye(4)
+    T[:3, 3] = t_cam
+    return RGBDFrame(depth_m=z.astype(np.float32), K=K, timestamp_s=0.0, color=color, T_world_cam=T)
+
+
+def test_photometric_residuals_on_a_ramp():
+    """Against a gray ramp on a fronto-parallel wall: a point moved along x by d (image shift f d / z pixels)
+    has residual slope * f d / z, its world gradient is the ramp's slope through the projection, and points
+    in front of the reference's surface (occluders) are not used."""
+    h, w, f, z0, slope = 48, 64, 50.0, 2.0, 0.01  # gray = 0.2 + slope * u
+    K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    color = torch.as_tensor(np.repeat((0.2 + slope * u)[..., None], 3, -1), dtype=torch.float32)
+    data = FrameData(0, 0.0, torch.full((h, w), z0), color, torch.as_tensor(K), torch.arange(h * w))
+    ref = depth_reference(data, np.eye(4), with_gray=True)
+    uu, vv = torch.meshgrid(torch.arange(8.0, w - 8), torch.arange(8.0, h - 8), indexing="xy")
+    uu, vv = uu.reshape(-1), vv.reshape(-1)
+    p_cam = torch.stack([(uu - K[0, 2]) / f * z0, (vv - K[1, 2]) / f * z0, torch.full_like(uu, z0)], -1)
+    gray = 0.2 + slope * uu
+    for d in (0.0, 0.013, -0.021):  # metres along x: 0, 0.33 and -0.53 pixels
+        T = torch.eye(4, dtype=torch.float64)
+        T[0, 3] = d
+        r, g_world, ok = photometric_residuals(ref, p_cam, gray, T, max_dist_m=0.05)
+        assert bool(ok.all())
+        torch.testing.assert_close(r, torch.full_like(r, slope * f * d / z0), atol=1e-5, rtol=0)
+        torch.testing.assert_close(g_world[:, 0], torch.full_like(r, slope * f / z0), atol=1e-5, rtol=0)
+        torch.testing.assert_close(g_world[:, 1], torch.zeros_like(r), atol=1e-5, rtol=0)
+    in_front = p_cam * 0.9  # same pixels, 0.2 m nearer than the reference's surface
+    assert not photometric_residuals(ref, in_front, gray, torch.eye(4, dtype=torch.float64), 0.05)[2].any()
+
+
+def test_photometric_term_normal_equations_match_autograd_jacobian(room):
+    """The photometric term adds J^T W J and J^T W r, J from autograd of the bilinear-interpolated residuals
+    (the 2x2 cell each point falls in and the occlusion test are held fixed)."""
+    cap, cfg, mapper = room
+    f, f_ref = cap[7], cap[6]
+    ref = depth_reference(frame_to_device(f_ref, "cpu"), f_ref.T_world_cam, with_gray=True)
+    pts = sample_points(frame_to_device(f, "cpu"), 256, torch.Generator().manual_seed(0), with_gray=True)
+    T = torch.as_tensor(perturb(f.T_world_cam, 0.05))
+    w = 0.5
+    plain = SdfSolverConfig(huber_m=1.0, max_residual_m=0.08)
+    both = SdfSolverConfig(huber_m=1.0, max_residual_m=0.08, w_photo=w, huber_photo=100.0)  # Huber off
+    _, H0, b0, _, _ = linearize(mapper.voxels, mapper.decoder, pts, T, plain, ref)
+    _, H1, b1, _, _ = linearize(mapper.voxels, mapper.decoder, pts, T, both, ref)
+    _, _, ok = photometric_residuals(ref, pts.p_cam, pts.gray, T, 0.05)
+    assert int(ok.sum()) > 100
+
+    def residuals(xi):
+        return w * photometric_residuals(ref, pts.p_cam.to(torch.float64), pts.gray.to(torch.float64),
+                                         perturb_right(T, xi), 0.05)[0][ok]
+
+    J = torch.autograd.functional.jacobian(residuals, torch.zeros(6, dtype=torch.float64))
+    r = residuals(torch.zeros(6, dtype=torch.float64))
+    n = pts.p_cam.shape[0]
+    assert float(J.abs().max()) > 0
+    torch.testing.assert_close(H1 - H0, J.T @ J / n, rtol=2e-3, atol=1e-5)
+    torch.testing.assert_close(b1 - b0, J.T @ r / n, rtol=2e-3, atol=1e-6)
+
+
+def test_photometric_term_finds_motion_along_a_textured_wall():
+    """Sliding along a flat wall changes neither the map's SDF nor the previous frame's depth, so geometry
+    alone keeps the prior; the wall's texture (``sdf_w_photo``, against the previous frame's image) does not."""
+    cfg = load_preset("cpu-small", TINY)
+    prev, cur = wall_frame(np.zeros(3)), wall_frame(np.array([0.012, -0.008, 0.0]))
+    mapper = make_mapper(cfg)
+    mapper.integrate(frame_to_device(prev, "cpu"), prev.T_world_cam)
+    errors = {}
+    for w in (0.0, 0.1):
+        tr = tracker_for(cfg, mapper, method="sdf", sdf_w_photo=w)
+        tr.remember(frame_to_device(prev, "cpu"), prev.T_world_cam)
+        assert (tr._reference.gray is None) == (w == 0)
+        res = tr.track(frame_to_device(cur, "cpu"), prev.T_world_cam)  # prior: the previous pose
+        assert not res.lost, res.reason
+        errors[w] = pose_error(res.T_world_cam, cur.T_world_cam)
+    assert errors[0.0][0] > 0.01, errors  # geometry alone stays near the prior, 14 mm away
+    assert errors[0.1][0] < 0.002 and errors[0.1][1] < 0.1, errors
+    # without colour the term is off (and no gray image is kept)
+    tr = tracker_for(cfg, mapper, use_color=False, method="sdf", sdf_w_photo=0.1)
+    tr.remember(frame_to_device(prev, "cpu"), prev.T_world_cam)
+    assert tr._reference.gray is None
 
 
 @pytest.mark.parametrize("use_color", [False, True])
