@@ -188,10 +188,11 @@ class TrackingConfig:
             raise ConfigError("outlier_max_m", f"must be > 0, got {self.outlier_max_m}")
         if not 0 <= self.min_valid_fraction < 1:
             raise ConfigError("min_valid_fraction", "must be in [0, 1)")
-        for name in ("sdf_huber_m", "sdf_max_residual_m", "sdf_inlier_m", "sdf_lost_residual_m", "sdf_frame_max_m",
-                     "sdf_huber_photo"):
+        for name in ("sdf_huber_m", "sdf_max_residual_m", "sdf_inlier_m", "sdf_lost_residual_m", "sdf_frame_max_m"):
             if not getattr(self, name) > 0:
                 raise ConfigError(name, f"must be > 0 metres, got {getattr(self, name)}")
+        if not self.sdf_huber_photo > 0:
+            raise ConfigError("sdf_huber_photo", f"must be > 0 gray levels, got {self.sdf_huber_photo}")
         for name in ("sdf_converge_tol", "sdf_coarse_converge_tol"):
             if not getattr(self, name) >= 0:
                 raise ConfigError(name, f"must be >= 0 (metres / radians), got {getattr(self, name)}")

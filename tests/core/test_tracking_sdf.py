@@ -255,6 +255,9 @@ def test_photometric_term_finds_motion_along_a_textured_wall():
     tr = tracker_for(cfg, mapper, use_color=False, method="sdf", sdf_w_photo=0.1)
     tr.remember(frame_to_device(prev, "cpu"), prev.T_world_cam)
     assert tr._reference.gray is None
+    for bad in ({"sdf_w_photo": -0.1}, {"sdf_huber_photo": 0.0}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            TrackingConfig(**bad)
 
 
 @pytest.mark.parametrize("use_color", [False, True])
