@@ -179,6 +179,17 @@ def smoothed_gray(color: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.conv2d(g, (k1[:, None] * k1[None, :])[None, None])[0, 0].contiguous()
 
 
+def _project_into(ref: DepthReference, p_cam: torch.Tensor, T: torch.Tensor
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Camera-frame points ``p_cam [N, 3]`` at pose ``T [4, 4]`` in ``ref``'s camera: ``(x [N, 3], u [N],
+    v [N])``, the points in its camera frame (metres) and their continuous pixel coordinates (depth clamped
+    at 1e-6 m for the division; callers test ``x[:, 2]`` for points behind the camera)."""
+    A = (ref.T_ref_world @ T).to(p_cam.dtype)
+    x = p_cam @ A[:3, :3].T + A[:3, 3]
+    z = x[:, 2].clamp(min=1e-6)
+    return x, x[:, 0] / z * ref.K[0, 0] + ref.K[0, 2], x[:, 1] / z * ref.K[1, 1] + ref.K[1, 2]
+
+
 def photometric_residuals(ref: DepthReference, p_cam: torch.Tensor, gray_cur: torch.Tensor, T: torch.Tensor,
                           max_dist_m: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Photometric residuals of camera-frame points ``p_cam [N, 3]`` with gray levels ``gray_cur [N]`` at pose
@@ -190,13 +201,10 @@ def photometric_residuals(ref: DepthReference, p_cam: torch.Tensor, gray_cur: to
     least one pixel inside the image, and not occluded there: the reference depth at the nearest pixel within
     ``max_dist_m`` of the point's). Fixed shapes, no host synchronisation."""
     assert ref.gray is not None
-    A = (ref.T_ref_world @ T).to(p_cam.dtype)
-    x = p_cam @ A[:3, :3].T + A[:3, 3]
+    x, u, v = _project_into(ref, p_cam, T)
     h, w, k = ref.height, ref.width, ref.baseline_px
-    fx, fy, cx, cy = ref.K[0, 0], ref.K[1, 1], ref.K[0, 2], ref.K[1, 2]
+    fx, fy = ref.K[0, 0], ref.K[1, 1]
     z = x[:, 2].clamp(min=1e-6)
-    u = x[:, 0] / z * fx + cx
-    v = x[:, 1] / z * fy + cy
     inb = (x[:, 2] > 1e-3) & (u >= 1) & (u <= w - 2) & (v >= 1) & (v <= h - 2)
     u, v = u.clamp(1, w - 2), v.clamp(1, h - 2)
     u0, v0 = u.floor(), v.floor()
@@ -230,15 +238,11 @@ def frame_residuals(ref: DepthReference, p_cam: torch.Tensor, T: torch.Tensor, m
     Returns ``(r [N], g_world [N, 3], ok [N])``: ``r = n . (x_ref - v)`` in metres, its gradient with respect
     to the world point (``R_ref^T n``), and the associated pairs (in the image, a normal there, the pair
     closer than ``max_dist_m``). Fixed shapes, no host synchronisation."""
-    A = (ref.T_ref_world @ T).to(p_cam.dtype)
-    x = p_cam @ A[:3, :3].T + A[:3, 3]  # [N, 3] in the reference camera
+    x, u, v = _project_into(ref, p_cam, T)
     h, w, k = ref.height, ref.width, ref.baseline_px
     fx, fy, cx, cy = ref.K[0, 0], ref.K[1, 1], ref.K[0, 2], ref.K[1, 2]
-    z = x[:, 2]
-    zs = z.clamp(min=1e-6)
-    u = torch.round(x[:, 0] / zs * fx + cx)
-    v = torch.round(x[:, 1] / zs * fy + cy)
-    inb = (z > 1e-3) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+    u, v = torch.round(u), torch.round(v)
+    inb = (x[:, 2] > 1e-3) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
     u, v = u.clamp(0, w - 1), v.clamp(0, h - 1)
     wp = w + 2 * k
     centre = ((v + k) * wp + (u + k)).to(torch.int64)
