@@ -1,5 +1,6 @@
 """One table from the JSON files `bench/engine_targets.sh` wrote: per capture and seed, our ATE and frames/s
-beside the TSDF baseline's from the same run.
+beside the TSDF baseline's from the same run, and the relative pose error between consecutive frames (RPE,
+translation rmse: the per-frame motion error, independent of any alignment).
 
 Usage: ``python bench/summarize_targets.py`` (prints Markdown; writes ``bench/results/targets_summary.json``).
 """
@@ -25,8 +26,11 @@ def _method(d: dict, name: str) -> dict | None:
     if m is None:
         return None
     ate = m.get("ate_aligned") or {}
+    rpe = m.get("rpe") or {}
     mesh = m.get("mesh") or {}
-    return {"ate_cm": 100 * ate["rmse_m"] if ate else None, "fps": m["fps"],
+    return {"ate_cm": 100 * ate["rmse_m"] if ate else None,
+            "rpe_mm": 1000 * rpe["trans_rmse_m"] if rpe else None,
+            "rpe_deg": rpe["rot_rmse_deg"] if rpe else None, "fps": m["fps"],
             "completion_ratio_pct": 100 * mesh["completion_ratio"] if mesh else None,
             "lost": (m.get("extra") or {}).get("frames_lost")}
 
@@ -47,12 +51,13 @@ def main() -> int:
     def fmt(x: float | None, p: int = 2) -> str:
         return "-" if x is None else f"{x:.{p}f}"
 
-    print("| capture | seed | variant | ATE cm ours | ATE cm baseline | fps ours | fps baseline | completion % ours |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| capture | seed | variant | ATE cm ours | ATE cm baseline | RPE mm/frame ours | RPE mm/frame baseline "
+          "| fps ours | fps baseline | completion % ours |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         v, b = r["voxfusion"] or {}, r["baseline"] or {}
         print(f"| {r['capture']} | {r['seed']} | {r['variant']} | {fmt(v.get('ate_cm'))} | {fmt(b.get('ate_cm'))} | "
-              f"{fmt(v.get('fps'))} | {fmt(b.get('fps'))} | {fmt(v.get('completion_ratio_pct'), 1)} |")
+              f"{fmt(v.get('rpe_mm'))} | {fmt(b.get('rpe_mm'))} | {fmt(v.get('fps'))} | {fmt(b.get('fps'))} | {fmt(v.get('completion_ratio_pct'), 1)} |")
     write_json(RESULTS / "targets_summary.json", {"rows": rows})
     return 0
 
