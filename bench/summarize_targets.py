@@ -57,7 +57,8 @@ def main() -> int:
     for r in rows:
         v, b = r["voxfusion"] or {}, r["baseline"] or {}
         print(f"| {r['capture']} | {r['seed']} | {r['variant']} | {fmt(v.get('ate_cm'))} | {fmt(b.get('ate_cm'))} | "
-              f"{fmt(v.get('rpe_mm'))} | {fmt(b.get('rpe_mm'))} | {fmt(v.get('fps'))} | {fmt(b.get('fps'))} | {fmt(v.get('completion_ratio_pct'), 1)} |")
+              f"{fmt(v.get('rpe_mm'))} | {fmt(b.get('rpe_mm'))} | {fmt(v.get('fps'))} | {fmt(b.get('fps'))} | "
+              f"{fmt(v.get('completion_ratio_pct'), 1)} |")
     write_json(RESULTS / "targets_summary.json", {"rows": rows})
     return 0
 
