@@ -156,7 +156,7 @@ def time_per_frame_costs(config: VoxFusionConfig, repeats: int) -> dict:
         raw = frame_to_device(frame, "cpu", cfg.min_depth_m, cfg.max_depth_m, depth_filter=None)
         filtered = frame_to_device(frame, "cpu", cfg.min_depth_m, cfg.max_depth_m, depth_filter=cfg.depth_filter)
         T = torch.as_tensor(frame.T_world_cam if frame.T_world_cam is not None else np.eye(4))
-        points = _backproject(filtered, T, cfg.alloc_stride)
+        points = _backproject(filtered, T, cfg.stride_for(frame.width))
         vmap = VoxelMap(config.voxel_size_m, config.field.embed_dim)
         vmap.allocate(points)
         return {

@@ -37,9 +37,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import json
 import queue
 import re
+import resource
 import statistics
 import subprocess
 import sys
@@ -150,6 +152,10 @@ class RealtimeResult:
     """Time until the first frame's map was published (not part of the rates)."""
     keyframes: int
     voxels: int
+    peak_gpu_mb: float | None = None
+    """Capacity workers (process isolation) only: the worker's own peak GPU memory allocated by torch."""
+    peak_rss_mb: float | None = None
+    """Capacity workers (process isolation) only: the worker's own peak resident memory."""
 
     @property
     def holds(self) -> bool:
@@ -256,13 +262,17 @@ def measure_iterations(frames: list[RGBDFrame], config: VoxFusionConfig, sizes: 
         tcfg = dataclasses.replace(config.tracking, method=method) if has_methods else config.tracking
         tracker = Tracker(tcfg, config.render, mapper.field_config.use_color, seed=config.seed)
         tracker.set_map(snap.voxels, snap.decoder)
+        # the sdf solver evaluates each level once before its first step: per field evaluation, as bench_accel
+        starts = tcfg.sdf_levels if method == "sdf" else 0
         times, iters = [], []
         for k, (prev, cur) in enumerate(zip(tracked[:-1], tracked[1:], strict=True)):
+            if hasattr(tracker, "remember"):  # the previous frame: the frame-to-frame terms' reference, as live
+                tracker.remember(slam._to_device(prev), prev.T_world_cam)
             data = slam._to_device(cur)  # the engine's own frame preparation (range, confidence, filters)
             res, ms = _timed(lambda t=tracker, d=data, p=prev: t.track(d, p.T_world_cam))
             if k > 0:  # the first frame is warm-up
                 times.append(ms)
-                iters.append(res.iterations)
+                iters.append(res.iterations + starts)
         rows.append({"stage": f"tracking ({method})", "ms_per_iter": sum(times) / max(1, sum(iters)),
                      "iters": sum(iters), "frames": len(times), "ms_per_frame": statistics.mean(times),
                      "paper_rtx3090_ms": PAPER_RTX3090_MS["tracking_ms_per_iter"]})
@@ -315,8 +325,14 @@ def _worker(spec_json: str, stdin=sys.stdin, stdout=sys.stdout) -> int:
     config, preset = session_config(spec, cap)
     print("READY", file=stdout, flush=True)
     stdin.readline()
+    if torch.cuda.is_available():
+        torch.cuda.reset_peak_memory_stats()
     result, slam = run_realtime(frames, config, preset, name, spec.seconds, spec.feed_hz)
     slam.close()
+    # the parent does no device work while its workers run: each worker reports its own memory
+    gpu_mb = torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else None
+    rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
+    result = dataclasses.replace(result, peak_gpu_mb=gpu_mb, peak_rss_mb=rss_mb)
     print("RESULT " + json.dumps(dataclasses.asdict(result)), file=stdout, flush=True)
     return 0
 
@@ -377,6 +393,17 @@ def _run_threads(spec: SessionSpec, n: int) -> list[RealtimeResult]:
     return results
 
 
+def _worker_memory(results: list[RealtimeResult]) -> dict:
+    """Per-round memory of process-isolated sessions, from each worker's own report (largest and sum); empty
+    for thread isolation, whose sessions share the section's process-wide figure."""
+    out = {}
+    for key in ("peak_gpu_mb", "peak_rss_mb"):
+        vals = [getattr(r, key) for r in results if getattr(r, key) is not None]
+        if vals:
+            out[f"worker_{key}_max"], out[f"worker_{key}_sum"] = max(vals), sum(vals)
+    return out
+
+
 def measure_capacity(spec: SessionSpec, max_sessions: int, budget_s: float, isolation: str) -> dict:
     """Sessions held at the feed rate: 1, 2, 4, ... until one falls below (see the module docstring)."""
     rows, held, stop = [], 0, f"reached --capacity-max {max_sessions}"
@@ -395,7 +422,7 @@ def measure_capacity(spec: SessionSpec, max_sessions: int, budget_s: float, isol
         rows.append({"sessions": n, "finished": len(results), "min_tracking_hz": min(rates),
                      "mean_tracking_hz": statistics.mean(rates), "dropped": sum(r.dropped for r in results),
                      "mean_latency_ms": statistics.mean([r.latency_ms for r in results]) if results else None,
-                     "holds": ok})
+                     **_worker_memory(results), "holds": ok})
         print(f"  capacity: {n} session(s): min {min(rates):.1f} Hz, {'holds' if ok else 'falls below'} "
               f"{spec.feed_hz:g} Hz", flush=True)
         if not ok:
@@ -459,6 +486,9 @@ def run_suite(args: argparse.Namespace) -> dict:
         spec = dataclasses.replace(synth, seconds=args.capacity_seconds or sizes.capacity_s,
                                    unique_frames=min(sizes.unique_frames, 30))
         isolation = args.capacity_isolation or ("thread" if args.smoke else "process")
+        if torch.cuda.is_available():  # hand the earlier sections' cached blocks back to the sessions' processes
+            gc.collect()
+            torch.cuda.empty_cache()
         results["capacity"] = _section("capacity", memory, lambda: measure_capacity(
             spec, min(args.capacity_max, sizes.capacity_max), args.capacity_budget_s, isolation))
     results["memory"] = memory
@@ -487,8 +517,14 @@ def _print_tables(results: dict) -> None:
         c = results["capacity"]
         rows.append({"what": f"sessions held at {c['feed_hz']:g} Hz ({c['isolation']} per session)",
                      "value": c["sessions_held"]})
+        for r in c["rows"]:
+            if "worker_peak_gpu_mb_max" in r:
+                rows.append({"what": f"capacity, {r['sessions']} session(s): peak GPU memory per session / all [MB]",
+                             "value": f"{r['worker_peak_gpu_mb_max']:.0f} / {r['worker_peak_gpu_mb_sum']:.0f}"})
     for name, m in results.get("memory", {}).items():
-        rows.append({"what": f"peak GPU memory [MB] ({name})", "value": m["peak_gpu_mb"]})
+        per_process = name == "capacity" and results.get("capacity", {}).get("isolation") == "process"
+        rows.append({"what": f"peak GPU memory [MB] ({name}{': this process only' if per_process else ''})",
+                     "value": m["peak_gpu_mb"]})
     print(format_table(rows, columns=["what", "value", "paper RTX 3090"], float_fmt=".2f"))
 
 

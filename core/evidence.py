@@ -12,8 +12,8 @@ cannot help a voxel that real, sparse observations allocated.
 What is measured (every integrated frame, :func:`observe_frame`), in **pixel-equivalents** so the two
 counters are comparable whatever the sampling strides:
 
-* ``hits``: depth points that fell in the voxel (the allocation points, each worth ``alloc_stride**2``
-  pixels);
+* ``hits``: depth points that fell in the voxel (the allocation points, each worth ``stride**2`` pixels,
+  ``MappingConfig.stride_for``);
 * ``free``: camera rays (every ``s``-th pixel per axis, ``s`` chosen for about ``free_rays`` rays per
   frame, each ray worth ``s**2`` pixels) that crossed the voxel *entirely* at least ``margin_m`` (camera
   depth) in front of their own observed depth: such a ray proves the part of the voxel it crossed is
@@ -228,7 +228,7 @@ def observe_frame(voxel_map: VoxelMap, frame: FrameData, T_world_cam: torch.Tens
         points_world: ``[N, 3]`` the frame's back-projected depth points (world metres), e.g. the
             allocation points.
         config: :class:`EvidenceConfig`.
-        point_weight: pixels each point stands for (``alloc_stride**2``).
+        point_weight: pixels each point stands for (``stride**2``, ``MappingConfig.stride_for``).
         point_voxels: ``[N]`` int64 the allocated voxel of each point (-1: none) when the caller has looked
             them up already (:meth:`~.voxels.VoxelMap.locate_surface_points`); None: looked up here.
     """

@@ -96,7 +96,7 @@ class SessionManager:
 
     def __init__(self, settings: ServerSettings) -> None:
         self.settings = settings
-        self.device = resolve_device(settings.device)
+        self.device = resolve_device(settings.session_device())
         self.default_preset = settings.default_preset or (CPU_PRESET if self.device.type == "cpu" else "default")
         self.zenoh_running = False
         self.counters = EventCounts()
@@ -272,7 +272,7 @@ class SessionManager:
         return preset, self._server_config(cfg)
 
     def _server_config(self, cfg: VoxFusionConfig) -> VoxFusionConfig:
-        return apply_overrides(cfg, {"device": self.settings.device, "mode": "realtime"})
+        return apply_overrides(cfg, {"device": self.settings.session_device(), "mode": "realtime"})
 
     def _open_count(self) -> int:
         """Open sessions, counting those being resumed (their slot is reserved)."""

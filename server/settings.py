@@ -120,6 +120,10 @@ class ServerSettings:
             raise ConfigError("ray_address", "session workers on Ray need the cluster's address (--ray-address)")
         if self.cpus_per_session <= 0 or self.gpus_per_session < 0:
             raise ConfigError("cpus_per_session", "need cpus_per_session > 0 and gpus_per_session >= 0")
+        if self.session_workers == "ray" and self.device == "cuda" and self.gpus_per_session == 0:
+            raise ConfigError("gpus_per_session", "Ray hides every GPU from an actor that asks for none, so the "
+                                                  "sessions could not run on CUDA: give --gpus-per-session > 0 "
+                                                  "(e.g. 0.25 for four sessions per GPU) or --device cpu")
         for name in ("worker_threads", "worker_restarts"):
             if getattr(self, name) < 0:
                 raise ConfigError(name, f"must be >= 0, got {getattr(self, name)}")
@@ -138,6 +142,14 @@ class ServerSettings:
         if "api_key" not in kwargs:
             kwargs["api_key"] = os.environ.get(API_KEY_ENV) or None
         return cls(**kwargs)  # type: ignore[arg-type]
+
+    def session_device(self) -> str:
+        """The device sessions' engines run on (``auto``, ``cpu`` or ``cuda``): ``device``, except that Ray
+        actors asking for no GPU (``gpus_per_session`` 0) see none (Ray empties their ``CUDA_VISIBLE_DEVICES``),
+        so ``auto`` is ``cpu`` there, and the server picks CPU presets for them."""
+        if self.session_workers == "ray" and self.gpus_per_session == 0:
+            return "cpu"
+        return self.device
 
     def ray_options(self) -> object | None:
         """The :class:`~voxfusion.server.ray_worker.RayOptions` of ``ray`` session workers (else ``None``)."""

@@ -25,6 +25,9 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path):
     assert stages == [f"tracking ({m})" for m in gpu_suite.tracker_methods()] + ["mapping",
                                                                                   "mapping (fixed-shape samples)"]
     assert all(r["ms_per_iter"] > 0 and r["iters"] > 0 for r in result["iterations"])
+    # the geometric tracker's figure is per field evaluation: each frame evaluates each level at least once
+    sdf = next(r for r in result["iterations"] if r["stage"] == "tracking (sdf)")
+    assert sdf["iters"] >= sdf["frames"] * 2
     rt = result["realtime"]["synthetic"]
     assert rt["frames_fed"] == round(gpu_suite.SMOKE.realtime_s * 30) and rt["preset"] == "synthetic+cpu"
     assert 0 <= rt["tracking_hz"] <= 31  # a busy CI machine may track none of the 9 frames in 0.3 s
@@ -50,6 +53,19 @@ def test_capacity_worker_waits_for_go_and_reports_one_session():
     assert lines[0] == "READY" and lines[1].startswith("RESULT ")
     result = gpu_suite.RealtimeResult(**json.loads(lines[1][len("RESULT "):]))
     assert result.frames_fed == 3 and result.feed_hz == 30.0 and result.preset == "synthetic+cpu"
+    # the worker's own memory (the parent does no device work while its workers run); no GPU here
+    assert result.peak_gpu_mb is None and result.peak_rss_mb > 100
+
+
+def test_capacity_rows_carry_the_workers_memory_largest_and_summed():
+    def session(gpu: float | None, rss: float | None) -> gpu_suite.RealtimeResult:
+        return gpu_suite.RealtimeResult("synthetic", "p", 3, 0.1, 30.0, 30.0, 5.0, 3, 0, 0, 1.0, 0.1, 1, 10,
+                                        peak_gpu_mb=gpu, peak_rss_mb=rss)
+
+    assert gpu_suite._worker_memory([session(100.0, 900.0), session(150.0, 800.0)]) == {
+        "worker_peak_gpu_mb_max": 150.0, "worker_peak_gpu_mb_sum": 250.0,
+        "worker_peak_rss_mb_max": 900.0, "worker_peak_rss_mb_sum": 1700.0}
+    assert gpu_suite._worker_memory([session(None, None)]) == {}  # thread isolation: nothing per session
 
 
 def test_full_suite_refuses_without_cuda(monkeypatch, capsys):

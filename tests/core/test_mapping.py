@@ -245,6 +245,38 @@ def test_band_samples_is_validated_and_defaults_to_the_renderers_spacing():
         load_preset("cpu", ["mapping.band_samples=0"])
 
 
+def test_alloc_stride_zero_picks_the_stride_from_the_image_width():
+    """``mapping.alloc_stride``: 1 (the built-in default) keeps every pixel; the CPU sizes' 0 takes every pixel
+    below 640 columns and every ``width // 320``-th from there; a negative stride is a typed error naming it."""
+    from voxfusion.core.errors import ConfigError
+
+    assert load_preset("default", ["device=cpu"]).mapping.stride_for(640) == 1
+    cpu = load_preset("cpu", []).mapping
+    assert [cpu.stride_for(w) for w in (256, 320, 639, 640, 1280, 1920)] == [1, 1, 1, 2, 4, 6]
+    assert load_preset("cpu", ["mapping.alloc_stride=3"]).mapping.stride_for(320) == 3
+    with pytest.raises(ConfigError, match="alloc_stride"):
+        load_preset("cpu", ["mapping.alloc_stride=-1"])
+
+
+def test_a_strided_frame_leaves_the_same_voxels_and_evidence_as_every_pixel():
+    """Allocation from every 2nd pixel of a 640x480 frame: the same surface voxels as from every pixel (a 0.2 m
+    voxel spans many pixels), and the hit evidence counts pixels, not points (each point is worth 4)."""
+    from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
+    from voxfusion.core.framedata import frame_to_device
+    from voxfusion.core.reconstruct import make_mapper
+
+    frame = SyntheticCapture(SyntheticConfig(n_frames=1, width=640, height=480))[0]
+    maps = {}
+    for stride in (1, 2):
+        cfg = load_preset("cpu", TINY + [f"mapping.alloc_stride={stride}", "mapping.first_frame_iters=1"])
+        mapper = make_mapper(cfg)
+        mapper.integrate(frame_to_device(frame, "cpu"), frame.T_world_cam)
+        maps[stride] = mapper.voxels
+    one, two = maps[1], maps[2]
+    assert two.n_voxels >= 0.97 * one.n_voxels and two.n_voxels <= one.n_voxels
+    assert float(two.voxel_hits.sum()) == pytest.approx(float(one.voxel_hits.sum()), rel=0.05)
+
+
 def test_published_keyframe_poses_follow_every_trained_keyframe_and_skip_the_others():
     """After mapping rounds that refine keyframe poses (fused Adam updates the corrections in place), every
     keyframe's published pose is its current pose; a publish with nothing moved recomputes nothing (the same
