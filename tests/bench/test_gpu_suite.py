@@ -42,6 +42,8 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path):
     assert all(r["mapping_ms_per_iter"] > 0 and r["tracking_ms_per_frame"] > 0 for r in accel.values())
     assert accel["float32 eager (reference)"]["sdf_dev_mm"] == 0.0
     assert accel["compile"]["sdf_dev_mm"] < 1e-3  # the same arithmetic, compiled
+    assert accel["float32 eager (reference)"]["compile_fell_back"] is False
+    assert isinstance(accel["compile"]["compile_fell_back"], bool)  # True would say the row is the eager decoder's
     assert 0.0 < accel["bfloat16"]["sdf_dev_mm"] < 2.0  # rounding, but within the 1 mm-scale of the field
 
 
