@@ -140,12 +140,13 @@ def _surface_points(data, T_world_cam: np.ndarray, n: int, device: torch.device)
 
 
 def run(device: str, smoke: bool, map_frames: int, iters: int, rounds: int,
-        variants: list[str] | None = None) -> dict:
-    """Every variant (``variants``: a subset of :data:`VARIANTS` names) on ``device``; the JSON-ready result."""
+        variants: list[str] | None = None, overrides: list[str] | None = None) -> dict:
+    """Every variant (``variants``: a subset of :data:`VARIANTS` names) on ``device``, with config ``overrides``
+    (``key=value``) on the preset; the JSON-ready result."""
     dev = torch.device(device)
     cuda = dev.type == "cuda"
     width, height = (640, 480) if cuda and not smoke else (320, 240)
-    overrides = [f"device={device}", *(SMOKE if smoke else [])]
+    overrides = [f"device={device}", *(SMOKE if smoke else []), *(overrides or [])]
     cap = SyntheticCapture(SyntheticConfig(n_frames=map_frames + 1, width=width, height=height, seed=0))
     # the paper preset on CUDA (the GPU targets are stated there); on a CPU what `voxfusion run` picks
     preset = "paper" if cuda and not smoke else preset_for(cap, "cpu").preset
@@ -160,8 +161,9 @@ def run(device: str, smoke: bool, map_frames: int, iters: int, rounds: int,
         for r in rows.values():
             r["mapping_speedup"] = ref["mapping_ms_per_iter"] / r["mapping_ms_per_iter"]
             r["tracking_speedup"] = ref["tracking_ms_per_frame"] / r["tracking_ms_per_frame"]
-    return {"device": str(dev), "preset": preset, "size": [width, height], "map_frames": map_frames,
-            "mapping_iters_per_round": iters, "rounds": rounds, "smoke": smoke, "variants": rows}
+    return {"device": str(dev), "preset": preset, "overrides": overrides, "size": [width, height],
+            "map_frames": map_frames, "mapping_iters_per_round": iters, "rounds": rounds, "smoke": smoke,
+            "variants": rows}
 
 
 def print_table(result: dict) -> None:

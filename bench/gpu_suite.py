@@ -337,8 +337,11 @@ def _worker(spec_json: str, stdin=sys.stdin, stdout=sys.stdout) -> int:
     return 0
 
 
-def _run_processes(spec: SessionSpec, n: int, timeout_s: float) -> list[RealtimeResult]:
-    """``n`` worker processes, started together once all are ready; results of those that finished."""
+def _run_processes(spec: SessionSpec, n: int, timeout_s: float, ready_timeout_s: float = 900.0
+                   ) -> tuple[list[RealtimeResult], str | None]:
+    """``n`` worker processes, started together once all are ready: the results of those that finished, and
+    why the round did not complete (None when every worker reported). Start-up (importing torch, the CUDA
+    context, rendering the frames) has its own ``ready_timeout_s``; ``timeout_s`` counts from the start signal."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(dataclasses.asdict(spec))]
     procs = [subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT)
              for _ in range(n)]
@@ -347,7 +350,7 @@ def _run_processes(spec: SessionSpec, n: int, timeout_s: float) -> list[Realtime
         threading.Thread(target=lambda i=i, p=p: [lines.put((i, ln.strip())) for ln in p.stdout], daemon=True).start()
     results: dict[int, RealtimeResult] = {}
     ready: set[int] = set()
-    deadline = time.monotonic() + timeout_s
+    deadline = time.monotonic() + ready_timeout_s
     try:
         while len(results) < n and time.monotonic() < deadline:
             if all(p.poll() is not None for p in procs) and lines.empty():
@@ -362,6 +365,7 @@ def _run_processes(spec: SessionSpec, n: int, timeout_s: float) -> list[Realtime
                     for p in procs:
                         p.stdin.write("go\n")
                         p.stdin.flush()
+                    deadline = time.monotonic() + timeout_s
             elif line.startswith("RESULT "):
                 results[i] = RealtimeResult(**json.loads(line[len("RESULT "):]))
     finally:
@@ -369,7 +373,12 @@ def _run_processes(spec: SessionSpec, n: int, timeout_s: float) -> list[Realtime
             if p.poll() is None:
                 p.kill()
             p.wait()
-    return list(results.values())
+    problem = None
+    if len(ready) < n:
+        problem = f"{n - len(ready)} of {n} session processes were not ready within {ready_timeout_s:g} s"
+    elif len(results) < n:
+        problem = f"{n - len(results)} of {n} sessions did not report within {timeout_s:g} s of the start"
+    return list(results.values()), problem
 
 
 def _run_threads(spec: SessionSpec, n: int) -> list[RealtimeResult]:
@@ -413,8 +422,9 @@ def measure_capacity(spec: SessionSpec, max_sessions: int, budget_s: float, isol
         if time.monotonic() - t_start > budget_s:
             stop = f"time budget of {budget_s:g} s spent"
             break
+        problem = None
         if isolation == "process":
-            results = _run_processes(spec, n, timeout_s=max(300.0, 20 * spec.seconds))
+            results, problem = _run_processes(spec, n, timeout_s=max(300.0, 20 * spec.seconds))
         else:
             results = _run_threads(spec, n)
         rates = [r.tracking_hz for r in results] or [0.0]
@@ -422,9 +432,12 @@ def measure_capacity(spec: SessionSpec, max_sessions: int, budget_s: float, isol
         rows.append({"sessions": n, "finished": len(results), "min_tracking_hz": min(rates),
                      "mean_tracking_hz": statistics.mean(rates), "dropped": sum(r.dropped for r in results),
                      "mean_latency_ms": statistics.mean([r.latency_ms for r in results]) if results else None,
-                     **_worker_memory(results), "holds": ok})
+                     **_worker_memory(results), "holds": ok, "problem": problem})
         print(f"  capacity: {n} session(s): min {min(rates):.1f} Hz, {'holds' if ok else 'falls below'} "
-              f"{spec.feed_hz:g} Hz", flush=True)
+              f"{spec.feed_hz:g} Hz{f' ({problem})' if problem else ''}", flush=True)
+        if problem is not None:  # a round that did not run is no measurement of the rate
+            stop = problem
+            break
         if not ok:
             stop = f"{n} sessions fall below {HOLD_FRACTION:.0%} of {spec.feed_hz:g} Hz"
             break
@@ -480,7 +493,8 @@ def run_suite(args: argparse.Namespace) -> dict:
             slam.close()
     if "accel" not in args.skip:
         results["accel"] = _section("accel", memory, lambda: bench_accel.run(
-            device, args.smoke, 3 if args.smoke else 31, 1 if args.smoke else 5, 2 if args.smoke else 7))
+            device, args.smoke, 3 if args.smoke else 31, 1 if args.smoke else 5, 2 if args.smoke else 7,
+            overrides=args.set))
     if "capacity" not in args.skip:
         # 30 distinct frames per session (played back and forth): every worker renders its own before it starts
         spec = dataclasses.replace(synth, seconds=args.capacity_seconds or sizes.capacity_s,

@@ -59,6 +59,16 @@ def test_capacity_worker_waits_for_go_and_reports_one_session():
     assert result.peak_gpu_mb is None and result.peak_rss_mb > 100
 
 
+def test_capacity_processes_report_or_say_why_not():
+    """Real worker processes: one tiny session reports its result and memory; with no time to start up, the round
+    says the workers were not ready instead of passing for a rate measurement."""
+    spec = gpu_suite.SessionSpec("synthetic", 32, 24, 3, 0.1, 30.0, "cpu", tuple(gpu_suite.TINY))
+    results, problem = gpu_suite._run_processes(spec, 1, timeout_s=120.0)
+    assert problem is None and len(results) == 1 and results[0].frames_fed == 3 and results[0].peak_rss_mb > 100
+    results, problem = gpu_suite._run_processes(spec, 2, timeout_s=120.0, ready_timeout_s=0.01)
+    assert results == [] and problem == "2 of 2 session processes were not ready within 0.01 s"
+
+
 def test_capacity_rows_carry_the_workers_memory_largest_and_summed():
     def session(gpu: float | None, rss: float | None) -> gpu_suite.RealtimeResult:
         return gpu_suite.RealtimeResult("synthetic", "p", 3, 0.1, 30.0, 30.0, 5.0, 3, 0, 0, 1.0, 0.1, 1, 10,
