@@ -353,7 +353,8 @@ def _run_processes(spec: SessionSpec, n: int, timeout_s: float, ready_timeout_s:
     deadline = time.monotonic() + ready_timeout_s
     try:
         while len(results) < n and time.monotonic() < deadline:
-            if all(p.poll() is not None for p in procs) and lines.empty():
+            # a worker that failed (a non-zero exit; 0 follows its RESULT line, which may still be in the queue)
+            if any(p.poll() not in (None, 0) for p in procs) and lines.empty():
                 break
             try:
                 i, line = lines.get(timeout=0.5)
@@ -374,7 +375,11 @@ def _run_processes(spec: SessionSpec, n: int, timeout_s: float, ready_timeout_s:
                 p.kill()
             p.wait()
     problem = None
-    if len(ready) < n:
+    died = {i: p.returncode for i, p in enumerate(procs) if i not in results and p.returncode not in (None, 0, -9)}
+    if died:  # -9: killed above, after the deadline
+        problem = (f"{len(died)} of {n} session processes exited without a result (exit codes "
+                   f"{sorted(set(died.values()))})")
+    elif len(ready) < n:
         problem = f"{n - len(ready)} of {n} session processes were not ready within {ready_timeout_s:g} s"
     elif len(results) < n:
         problem = f"{n - len(results)} of {n} sessions did not report within {timeout_s:g} s of the start"
@@ -533,7 +538,8 @@ def _print_tables(results: dict) -> None:
                      "value": c["sessions_held"]})
         for r in c["rows"]:
             if "worker_peak_gpu_mb_max" in r:
-                rows.append({"what": f"capacity, {r['sessions']} session(s): peak GPU memory per session / all [MB]",
+                rows.append({"what": f"capacity, {r['sessions']} session(s): peak GPU memory allocated by torch, "
+                                     "per session / all [MB]",
                              "value": f"{r['worker_peak_gpu_mb_max']:.0f} / {r['worker_peak_gpu_mb_sum']:.0f}"})
     for name, m in results.get("memory", {}).items():
         per_process = name == "capacity" and results.get("capacity", {}).get("isolation") == "process"

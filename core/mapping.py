@@ -85,11 +85,12 @@ class MappingConfig:
     at 640x480). Each point costs the same whatever the image, and at 640x480 (fx ~ 525 px) two pixels span
     under 1.6 cm at 4 m, about one 1.25 cm surface-mark cell (``voxel / 16`` at 0.2 m), so the map loses
     almost nothing (a synthetic 640x480 frame allocates 638 voxels instead of 640) while a frame's bookkeeping
-    handles a quarter of the points. Measured with `cpu` sizes on the
-    2-core Xeon (1 -> 2): 7-Scenes 0-499 seeds 0-4 ATE 3.84 / 3.85 / 3.64 / 4.10 / 3.73 -> 3.83 / 4.09 / 3.83 /
-    3.94 / 3.74 cm at 8.3-9.2 -> 10.8-11.2 frames/s; TUM fr1 desk 0.22 / 0.22 / 0.22 -> 0.22 / 0.23 / 0.23 cm
-    at 7.4-7.6 -> 8.3-9.0; TUM fr3 8.9-9.3 -> 10.8-11.3 frames/s; on the 320x240 synthetic room stride 2 would
-    gain ~6 % but sits at 1.6 cm per step at 2 m, so 0 keeps every pixel there. The `cpu` preset uses 0; the
+    handles a quarter of the points. Measured with `cpu` sizes on the 2-core Xeon, A/B runs of `bench/run.py`
+    beside the targets runs (1 -> 2): 7-Scenes 0-499 seeds 0-4 ATE 3.84 / 3.85 / 3.64 / 4.10 / 3.73 -> 3.83 /
+    4.09 / 3.83 / 3.94 / 3.74 cm at 8.3-9.2 -> 10.8-11.2 frames/s; TUM fr1 desk 0.22 / 0.22 / 0.22 -> 0.22 /
+    0.23 / 0.23 cm at 7.4-7.6 -> 8.3-9.0; TUM fr3 8.9-9.3 -> 10.8-11.3 frames/s (the tenth targets run: 7-Scenes
+    10.4-10.5, TUM fr3 8.6-10.4); on the 320x240 synthetic room stride 2 would gain ~6 % but sits at 1.6 cm per
+    step at 2 m, so 0 keeps every pixel there. The `cpu` preset uses 0; the
     built-in default keeps every pixel (the paper's behaviour)."""
     optimize_poses: bool = True
     """Jointly refine the window's camera poses (the first keyframe stays fixed). Off for known poses."""

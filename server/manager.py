@@ -96,8 +96,12 @@ class SessionManager:
 
     def __init__(self, settings: ServerSettings) -> None:
         self.settings = settings
-        self.device = resolve_device(settings.session_device())
-        self.default_preset = settings.default_preset or (CPU_PRESET if self.device.type == "cpu" else "default")
+        # this process's device (stored maps, health): the server's choice, or where Ray runs the engines
+        # elsewhere, whatever this host has; the sessions' presets follow where their engines run
+        self.device = resolve_device("auto" if settings.session_workers == "ray" else settings.device)
+        on = settings.session_device()
+        session_type = self.device.type if on == "auto" else on
+        self.default_preset = settings.default_preset or (CPU_PRESET if session_type == "cpu" else "default")
         self.zenoh_running = False
         self.counters = EventCounts()
         """Event counters for ``/metrics``: ``(name, label value)`` -> count."""

@@ -144,9 +144,12 @@ class ServerSettings:
         return cls(**kwargs)  # type: ignore[arg-type]
 
     def session_device(self) -> str:
-        """The device sessions' engines run on (``auto``, ``cpu`` or ``cuda``): ``device``, except that Ray
-        actors asking for no GPU (``gpus_per_session`` 0) see none (Ray empties their ``CUDA_VISIBLE_DEVICES``),
-        so ``auto`` is ``cpu`` there, and the server picks CPU presets for them."""
+        """The device sessions' engines run on (``auto``, ``cpu`` or ``cuda``): ``device`` for worker processes
+        and threads (they see this host's devices). Ray actors run elsewhere: one asking for no GPU
+        (``gpus_per_session`` 0) sees none (Ray empties its ``CUDA_VISIBLE_DEVICES``), so ``cpu``; one asking for
+        a GPU share runs on a GPU node, so ``cuda`` even where the API host itself has no GPU."""
+        if self.session_workers == "ray" and self.device == "auto":
+            return "cuda" if self.gpus_per_session > 0 else "cpu"
         if self.session_workers == "ray" and self.gpus_per_session == 0:
             return "cpu"
         return self.device

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -67,6 +68,12 @@ def test_capacity_processes_report_or_say_why_not():
     assert problem is None and len(results) == 1 and results[0].frames_fed == 3 and results[0].peak_rss_mb > 100
     results, problem = gpu_suite._run_processes(spec, 2, timeout_s=120.0, ready_timeout_s=0.01)
     assert results == [] and problem == "2 of 2 session processes were not ready within 0.01 s"
+    # a worker that fails at start (no such capture) ends the round at once, with its exit code
+    broken = dataclasses.replace(spec, capture="/nonexistent/capture")
+    t0 = time.monotonic()
+    results, problem = gpu_suite._run_processes(broken, 1, timeout_s=120.0)
+    assert results == [] and problem.startswith("1 of 1 session processes exited without a result")
+    assert time.monotonic() - t0 < 60  # not the 900 s start-up deadline
 
 
 def test_capacity_rows_carry_the_workers_memory_largest_and_summed():

@@ -267,14 +267,15 @@ def test_a_strided_frame_leaves_the_same_voxels_and_evidence_as_every_pixel():
 
     frame = SyntheticCapture(SyntheticConfig(n_frames=1, width=640, height=480))[0]
     maps = {}
-    for stride in (1, 2):
+    for stride in (1, 2, 0):  # 0: the CPU preset's rule, every 2nd pixel at 640 columns
         cfg = load_preset("cpu", TINY + [f"mapping.alloc_stride={stride}", "mapping.first_frame_iters=1"])
         mapper = make_mapper(cfg)
         mapper.integrate(frame_to_device(frame, "cpu"), frame.T_world_cam)
         maps[stride] = mapper.voxels
-    one, two = maps[1], maps[2]
+    one, two, auto = maps[1], maps[2], maps[0]
     assert two.n_voxels >= 0.97 * one.n_voxels and two.n_voxels <= one.n_voxels
     assert float(two.voxel_hits.sum()) == pytest.approx(float(one.voxel_hits.sum()), rel=0.05)
+    assert auto.n_voxels == two.n_voxels and torch.equal(auto.voxel_hits, two.voxel_hits)
 
 
 def test_published_keyframe_poses_follow_every_trained_keyframe_and_skip_the_others():
