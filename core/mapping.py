@@ -90,8 +90,8 @@ class MappingConfig:
     4.09 / 3.83 / 3.94 / 3.74 cm at 8.3-9.2 -> 10.8-11.2 frames/s; TUM fr1 desk 0.22 / 0.22 / 0.22 -> 0.22 /
     0.23 / 0.23 cm at 7.4-7.6 -> 8.3-9.0; TUM fr3 8.9-9.3 -> 10.8-11.3 frames/s (the tenth targets run: 7-Scenes
     10.4-10.5, TUM fr3 8.6-10.4); on the 320x240 synthetic room stride 2 would gain ~6 % but sits at 1.6 cm per
-    step at 2 m, so 0 keeps every pixel there. The `cpu` preset uses 0; the
-    built-in default keeps every pixel (the paper's behaviour)."""
+    step at 2 m, so 0 keeps every pixel there. The `cpu` preset uses 0; the built-in default keeps every pixel
+    (the paper's behaviour)."""
     optimize_poses: bool = True
     """Jointly refine the window's camera poses (the first keyframe stays fixed). Off for known poses."""
     lr_pose: float = 1e-3

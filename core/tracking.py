@@ -330,8 +330,7 @@ class Tracker:
             w_frame=cfg.sdf_w_frame, frame_max_m=cfg.sdf_frame_max_m,
             w_photo=self._photo_weight(), huber_photo=cfg.sdf_huber_photo)
         T0 = torch.as_tensor(T_prior, dtype=torch.float64, device=dev)
-        reference = self._reference if cfg.sdf_w_frame > 0 or self._photo_weight() > 0 else None
-        sol = solve_pose(voxels, decoder, levels, T0, solver, reference)
+        sol = solve_pose(voxels, decoder, levels, T0, solver, self._reference)  # None unless a term needs one
         # the one read-back of the frame
         T_est = nearest_rigid(sol.T.cpu().numpy())
         cost, inlier, med, n_valid = (float(sol.cost), float(sol.inlier_fraction), float(sol.median_residual_m),

@@ -148,10 +148,8 @@ class ServerSettings:
         and threads (they see this host's devices). Ray actors run elsewhere: one asking for no GPU
         (``gpus_per_session`` 0) sees none (Ray empties its ``CUDA_VISIBLE_DEVICES``), so ``cpu``; one asking for
         a GPU share runs on a GPU node, so ``cuda`` even where the API host itself has no GPU."""
-        if self.session_workers == "ray" and self.device == "auto":
+        if self.session_workers == "ray" and self.device == "auto":  # (cuda without a GPU share is refused)
             return "cuda" if self.gpus_per_session > 0 else "cpu"
-        if self.session_workers == "ray" and self.gpus_per_session == 0:
-            return "cpu"
         return self.device
 
     def ray_options(self) -> object | None:
