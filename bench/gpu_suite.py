@@ -266,8 +266,7 @@ def measure_iterations(frames: list[RGBDFrame], config: VoxFusionConfig, sizes: 
         starts = tcfg.sdf_levels if method == "sdf" else 0
         times, iters = [], []
         for k, (prev, cur) in enumerate(zip(tracked[:-1], tracked[1:], strict=True)):
-            if hasattr(tracker, "remember"):  # the previous frame: the frame-to-frame terms' reference, as live
-                tracker.remember(slam._to_device(prev), prev.T_world_cam)
+            tracker.remember(slam._to_device(prev), prev.T_world_cam)  # the frame-to-frame terms' reference, as live
             data = slam._to_device(cur)  # the engine's own frame preparation (range, confidence, filters)
             res, ms = _timed(lambda t=tracker, d=data, p=prev: t.track(d, p.T_world_cam))
             if k > 0:  # the first frame is warm-up
