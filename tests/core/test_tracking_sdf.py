@@ -18,6 +18,8 @@ from voxfusion.core.tracking_sdf import (
     SdfSolverConfig,
     depth_reference,
     frame_residuals,
+    gaussian_blur,
+    gray_images,
     linearize,
     photometric_residuals,
     sample_points,
@@ -164,16 +166,20 @@ def test_frame_term_sharpens_tracking_on_a_coarse_map():
     assert errors[2.0][0] < 0.5 * errors[0.0][0], errors
 
 
-def wall_frame(t_cam, h=72, w=96, f=80.0, wall_z=2.07):
+def wall_frame(t_cam, h=72, w=96, f=80.0, wall_z=2.07, period_m=0.3, amplitude=0.35, fine_period_m=None,
+               fine_amplitude=0.15):
     """An RGB-D frame of the textured wall ``Z = wall_z`` (world; not on a voxel face) seen by a camera moved
     by ``t_cam`` (no rotation; OpenCV axes, so the camera looks along +Z). The wall's gray level is a smooth checker of
-    period 0.3 m in world X and Y (~12 pixels): depth alone cannot tell where along the wall the camera is."""
+    period 0.3 m in world X and Y (~12 pixels; ``period_m``, ``amplitude``): depth alone cannot tell where along
+    the wall the camera is. With ``fine_period_m`` a finer checker (``fine_amplitude``) lies on top of it."""
     K = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     z = np.full((h, w), wall_z - t_cam[2])
     X = (u - K[0, 2]) / f * z + t_cam[0]
     Y = (v - K[1, 2]) / f * z + t_cam[1]
-    gray = 0.5 + 0.35 * np.sin(2 * np.pi * X / 0.3) * np.sin(2 * np.pi * Y / 0.3)
+    gray = 0.5 + amplitude * np.sin(2 * np.pi * X / period_m) * np.sin(2 * np.pi * Y / period_m)
+    if fine_period_m is not None:
+        gray = gray + fine_amplitude * np.sin(2 * np.pi * X / fine_period_m) * np.sin(2 * np.pi * Y / fine_period_m)
     color = np.repeat((gray * 255).round().astype(np.uint8)[..., None], 3, -1)
     T = np.eye(4)
     T[:3, 3] = t_cam
@@ -243,7 +249,8 @@ def test_photometric_term_finds_motion_along_a_textured_wall():
     mapper.integrate(frame_to_device(prev, "cpu"), prev.T_world_cam)
     errors = {}
     for w in (0.0, 0.1):
-        tr = tracker_for(cfg, mapper, method="sdf", sdf_w_photo=w)
+        # the sharp term alone (the blurred stage before it: test_blurred_photometric_stage_widens_the_basin)
+        tr = tracker_for(cfg, mapper, method="sdf", sdf_w_photo=w, sdf_w_photo_blur=0.0)
         tr.remember(frame_to_device(prev, "cpu"), prev.T_world_cam)
         assert (tr._reference.gray is None) == (w == 0)
         res = tr.track(frame_to_device(cur, "cpu"), prev.T_world_cam)  # prior: the previous pose
@@ -258,6 +265,68 @@ def test_photometric_term_finds_motion_along_a_textured_wall():
     for bad in ({"sdf_w_photo": -0.1}, {"sdf_huber_photo": 0.0}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             TrackingConfig(**bad)
+
+
+def test_blurred_photometric_stage_widens_the_basin():
+    """A wall with a weak coarse and a strong fine checker (0.4 and 0.08 m: ~31 and ~6 pixels), the camera slid
+    47 mm along it (~3.6 pixels): against the sharp image alone the solver ends in a fine-texture minimum
+    (~50 mm off); with the blurred stage first (``sdf_w_photo_blur``) it reaches the true pose, which the
+    sharp image then polishes."""
+    cfg = load_preset("cpu-small", TINY)
+    kw = {"h": 144, "w": 192, "f": 160.0, "period_m": 0.4, "amplitude": 0.25, "fine_period_m": 0.08,
+          "fine_amplitude": 0.2}
+    prev, cur = wall_frame(np.zeros(3), **kw), wall_frame(np.array([0.04, -0.024, 0.0]), **kw)
+    mapper = make_mapper(cfg)
+    mapper.integrate(frame_to_device(prev, "cpu"), prev.T_world_cam)
+    errors = {}
+    for w in (0.0, 0.3):
+        tr = tracker_for(cfg, mapper, method="sdf", sdf_w_photo=0.1, sdf_w_photo_blur=w)
+        tr.remember(frame_to_device(prev, "cpu"), prev.T_world_cam)
+        assert (tr._reference.gray_blurred is None) == (w == 0)
+        res = tr.track(frame_to_device(cur, "cpu"), prev.T_world_cam)
+        assert not res.lost, res.reason
+        errors[w] = pose_error(res.T_world_cam, cur.T_world_cam)
+    assert errors[0.0][0] > 0.02, errors
+    assert errors[0.3][0] < 0.005 and errors[0.3][1] < 0.1, errors
+    # both sides are blurred alike, so at the true pose the blurred residuals vanish (up to 8-bit rounding and
+    # the replicated image edges), where the sharp gray levels against the blurred image would not
+    ref = tr._reference.blurred()
+    data = frame_to_device(cur, "cpu")
+    images = gray_images(data.color, 2.0)
+    pts = sample_points(data, 512, torch.Generator().manual_seed(0), with_gray=True, blurred=images.blurred)
+    r, _, ok = photometric_residuals(ref, pts.p_cam, pts.gray_blurred, torch.as_tensor(cur.T_world_cam), 0.05)
+    r_sharp = photometric_residuals(ref, pts.p_cam, pts.gray, torch.as_tensor(cur.T_world_cam), 0.05)[0]
+    assert int(ok.sum()) > 400
+    assert float(r[ok].abs().median()) < 2e-3 < 0.01 < float(r_sharp[ok].abs().median()), (r, r_sharp)
+    # the stage needs the sharp term: without it (or without colour) no blurred image is kept
+    for kw_off, color in (({"sdf_w_photo": 0.0}, True), ({}, False)):
+        tr = tracker_for(cfg, mapper, use_color=color, method="sdf", **kw_off)
+        tr.remember(frame_to_device(prev, "cpu"), prev.T_world_cam)
+        assert tr._reference.gray_blurred is None
+    for bad in ({"sdf_w_photo_blur": -0.1}, {"sdf_photo_blur_px": -1.0}):
+        with pytest.raises(ConfigError, match=next(iter(bad))):
+            TrackingConfig(**bad)
+
+
+def test_gaussian_blur_matches_a_direct_convolution():
+    """The separable blur against a direct 2-D sum over the truncated kernel (edges replicated): same values,
+    a constant image unchanged, the total of an interior impulse kept."""
+    img = torch.rand(20, 27, generator=torch.Generator().manual_seed(0))
+    sigma = 1.7
+    r = int(3 * sigma + 0.5)
+    x = np.arange(-r, r + 1)
+    k1 = np.exp(-0.5 * (x / sigma) ** 2)
+    k2 = np.outer(k1, k1) / k1.sum() ** 2
+    padded = np.pad(img.numpy().astype(np.float64), r, mode="edge")
+    ref = np.zeros(img.shape)
+    for i in range(img.shape[0]):
+        for j in range(img.shape[1]):
+            ref[i, j] = (padded[i:i + 2 * r + 1, j:j + 2 * r + 1] * k2).sum()
+    torch.testing.assert_close(gaussian_blur(img, sigma), torch.as_tensor(ref, dtype=torch.float32), atol=1e-5, rtol=0)
+    torch.testing.assert_close(gaussian_blur(torch.full((9, 9), 0.3), 1.0), torch.full((9, 9), 0.3))
+    impulse = torch.zeros(31, 31)
+    impulse[15, 15] = 1.0
+    assert abs(float(gaussian_blur(impulse, 2.0).sum()) - 1.0) < 1e-5
 
 
 @pytest.mark.parametrize("use_color", [False, True])
