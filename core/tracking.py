@@ -180,9 +180,9 @@ class TrackingConfig:
     blurred images' basin is as wide as their blur, and the finest level then polishes against the sharp
     image. Measured on the 2-core AMD EPYC, `cpu` sizes, ATE cm (0 -> 0.3, blur 2 px; `bench/run.py`):
     synthetic room seed 3 1.72 -> 0.96 (TSDF baseline 0.61), seeds 0 / 1 / 2 / 4 / 5 / 6 0.14 / 0.29 / 0.21 /
-    0.19 / 0.18 / 0.18 -> 0.16 / 0.28 / 0.22 / 0.21 / 0.18 / 0.17; fast rotation seeds 0-5 0.33 / 0.24 / 0.35 /
+    0.19 / 0.18 / 0.18 -> 0.16 / 0.27 / 0.22 / 0.21 / 0.18 / 0.17; fast rotation seeds 0-5 0.33 / 0.24 / 0.35 /
     0.47 / 7.35 / 0.29 -> 0.28 / 0.43 / 0.41 / 0.52 / 1.36 / 0.34 (the baseline loses all six); TUM fr1 desk
-    0.22 / 0.23 / 0.23 -> 0.16 / 0.21 / 0.22. Also measured, with the reference's image blurred alone (seed 3;
+    0.22 / 0.23 / 0.23 -> 0.16 / 0.21 / 0.21. Also measured, with the reference's image blurred alone (seed 3;
     fast rotation seed 4): 0.3 / 2 px 0.80, 1.44 (within the spread, but that term's minimum is off the true
     pose: ~2 mm on a test wall); weight 0.1 1.53; 0.5 0.82, 4.06; blur 1.5 px 0.75, 4.87; 3 px 0.83; the
     blurred term at the coarse level's points instead of a stage of its own 0.78, but fast rotation seeds 0 / 1
