@@ -112,7 +112,7 @@ def measure_variant(base: VoxFusionConfig, options: dict[str, object], frames: l
     # the previous frame: the reference of the frame-to-frame terms, as in a running session
     tracker.remember(frame_to_device(frames[map_frames - 1], device), prior)
     result = tracker.track(data, prior)  # warm-up
-    evals = result.iterations + config.tracking.sdf_levels
+    evals = result.iterations + tracker.sdf_stages()  # each solver stage evaluates its start once
     tracking_ms = _median_ms(lambda: tracker.track(data, prior), rounds, device)
     err_mm, err_deg = _pose_error(np.asarray(tracker.track(data, prior).T_world_cam), target.T_world_cam)
 

@@ -110,10 +110,10 @@ def main(argv: list[str] | None = None) -> int:
         iterations: list[int] = []
         c = count_ops(lambda t=tracker, log=iterations: log.append(t.track(frame, prior).iterations), args.repeats)
         its = sum(iterations[-args.repeats:]) / args.repeats
-        # the sdf tracker evaluates each stage once more than it iterates (the starting point): its levels, and
-        # the blurred photometric stage where the checked-out tracker has one and the sharp term is on
-        blurred_stage = getattr(tcfg, "sdf_w_photo_blur", 0) > 0 and getattr(tcfg, "sdf_w_photo", 0) > 0
-        per_call = its + (tcfg.sdf_levels + blurred_stage if kw.get("method") == "sdf" else 0)
+        # the sdf tracker evaluates each stage once more than it iterates (the starting point); a checkout
+        # older than Tracker.sdf_stages has one stage per level
+        stages = tracker.sdf_stages() if hasattr(tracker, "sdf_stages") else tcfg.sdf_levels
+        per_call = its + (stages if kw.get("method") == "sdf" else 0)
         rows[name] = {"iterations_per_frame": its, "evaluations_per_frame": per_call,
                       "aten_ops_per_iteration": c["aten_ops"] / per_call,
                       "host_syncs_per_iteration": c["host_syncs"] / per_call,

@@ -262,11 +262,11 @@ def measure_iterations(frames: list[RGBDFrame], config: VoxFusionConfig, sizes: 
         tcfg = dataclasses.replace(config.tracking, method=method) if has_methods else config.tracking
         tracker = Tracker(tcfg, config.render, mapper.field_config.use_color, seed=config.seed)
         tracker.set_map(snap.voxels, snap.decoder)
-        # the sdf solver evaluates each level once before its first step: per field evaluation, as bench_accel
-        starts = tcfg.sdf_levels if method == "sdf" else 0
         times, iters = [], []
         for k, (prev, cur) in enumerate(zip(tracked[:-1], tracked[1:], strict=True)):
             tracker.remember(slam._to_device(prev), prev.T_world_cam)  # the frame-to-frame terms' reference, as live
+            # the sdf solver evaluates each stage once before its first step: per field evaluation, as bench_accel
+            starts = tracker.sdf_stages() if method == "sdf" else 0
             data = slam._to_device(cur)  # the engine's own frame preparation (range, confidence, filters)
             res, ms = _timed(lambda t=tracker, d=data, p=prev: t.track(d, p.T_world_cam))
             if k > 0:  # the first frame is warm-up

@@ -328,6 +328,15 @@ class Tracker:
         c = self.config
         return c.sdf_w_photo_blur if self._photo_weight() > 0 and c.sdf_photo_blur_px > 0 else 0.0
 
+    def sdf_stages(self) -> int:
+        """Solver stages of the ``sdf`` method per frame, with the reference it holds now: its levels, and the
+        blurred photometric stage where that runs. Each stage evaluates its starting pose once before its
+        first step, so a frame makes ``iterations + sdf_stages()`` field evaluations (what benchmarks count
+        per evaluation)."""
+        ref = self._reference
+        blurred = self._photo_blur_weight() > 0 and ref is not None and ref.gray_blurred is not None
+        return self.config.sdf_levels + int(blurred)
+
     def track(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool = False) -> TrackResult:
         """Optimise the pose of ``frame`` starting from ``T_prior`` (``[4, 4]`` camera-to-world).
 

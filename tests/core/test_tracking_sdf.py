@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from voxfusion.core import tracking_sdf
 from voxfusion.core.datasets import open_capture
 from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
@@ -267,7 +268,7 @@ def test_photometric_term_finds_motion_along_a_textured_wall():
             TrackingConfig(**bad)
 
 
-def test_blurred_photometric_stage_widens_the_basin():
+def test_blurred_photometric_stage_widens_the_basin(monkeypatch):
     """A wall with a weak coarse and a strong fine checker (0.4 and 0.08 m: ~31 and ~6 pixels), the camera slid
     47 mm along it (~3.6 pixels): against the sharp image alone the solver ends in a fine-texture minimum
     (~50 mm off); with the blurred stage first (``sdf_w_photo_blur``) it reaches the true pose, which the
@@ -278,12 +279,18 @@ def test_blurred_photometric_stage_widens_the_basin():
     prev, cur = wall_frame(np.zeros(3), **kw), wall_frame(np.array([0.04, -0.024, 0.0]), **kw)
     mapper = make_mapper(cfg)
     mapper.integrate(frame_to_device(prev, "cpu"), prev.T_world_cam)
+    calls = []  # field evaluations: what Tracker.sdf_stages tells the benchmarks to expect
+    real_linearize = tracking_sdf.linearize
+    monkeypatch.setattr(tracking_sdf, "linearize", lambda *a, **k: calls.append(1) or real_linearize(*a, **k))
     errors = {}
     for w in (0.0, 0.3):
         tr = tracker_for(cfg, mapper, method="sdf", sdf_w_photo=0.1, sdf_w_photo_blur=w)
         tr.remember(frame_to_device(prev, "cpu"), prev.T_world_cam)
         assert (tr._reference.gray_blurred is None) == (w == 0)
+        assert tr.sdf_stages() == tr.config.sdf_levels + (w > 0)
+        calls.clear()
         res = tr.track(frame_to_device(cur, "cpu"), prev.T_world_cam)
+        assert len(calls) == res.iterations + tr.sdf_stages()
         assert not res.lost, res.reason
         errors[w] = pose_error(res.T_world_cam, cur.T_world_cam)
     assert errors[0.0][0] > 0.02, errors
