@@ -74,9 +74,10 @@ class TrackingConfig:
     lr: float = 1e-2
     """Adam learning rate on the 6-vector (about metres / radians per iteration) at the first iteration."""
     lr_device_prior: float = 1e-3
-    """Learning rate used instead of ``lr`` when the prior came from device poses: visual-inertial relative
-    motion (ARKit) is good to about a millimetre between frames, and Adam's steps (about the learning rate
-    each) would otherwise throw the pose centimetres away and leave it off by about the last step."""
+    """Learning rate used instead of ``lr`` when the start is already close: a prior from device poses
+    (visual-inertial relative motion, ARKit, is good to about a millimetre between frames) and the render
+    refinement after the ``sdf`` tracker (``refine_iters``). Adam's steps (about the learning rate each) would
+    otherwise throw the pose centimetres away and leave it off by about the last step."""
     lr_rot_ratio: float = 1.0
     """Rotation steps are this times the translation steps (1: the same, in radians and metres)."""
     lr_final_ratio: float = 0.1
@@ -199,7 +200,8 @@ class TrackingConfig:
     moved to, two threads were faster (2026-11-24, synthetic room: 14.0 against 16.3 ms per frame); the default
     stays 1 until both kinds of CPU can be measured again."""
     refine_iters: int = 0
-    """``sdf`` method: iterations of the render tracker run after it (0: none)."""
+    """``sdf`` method: iterations of the render tracker run after it (0: none), with the small steps of
+    ``lr_device_prior`` (it starts at the ``sdf`` tracker's pose, a few millimetres from the answer)."""
     loss: LossConfig = field(default_factory=LossConfig)
     """Loss weights used for tracking."""
 
@@ -349,7 +351,8 @@ class Tracker:
         if self.config.method == "sdf":
             out = self._track_sdf(frame, T_prior, prior_from_device)
             if self.config.refine_iters > 0 and not out.lost:
-                ref = self._track_render(frame, out.T_world_cam, prior_from_device, self.config.refine_iters)
+                ref = self._track_render(frame, out.T_world_cam, prior_from_device, self.config.refine_iters,
+                                         close_start=True)
                 if not ref.lost:
                     out = dataclasses.replace(out, T_world_cam=ref.T_world_cam,
                                               iterations=out.iterations + ref.iterations)
@@ -400,9 +403,10 @@ class Tracker:
 
     # ------------------------------------------------------------------ render (paper) tracker
     def _track_render(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool,
-                      iters: int) -> TrackResult:
+                      iters: int, close_start: bool = False) -> TrackResult:
         """Adam through the volume renderer. The loop keeps its statistics on the device and reads them back
-        only every ``check_every`` iterations (convergence) and once at the end."""
+        only every ``check_every`` iterations (convergence) and once at the end. ``close_start``: ``T_prior``
+        is already near the answer (a refinement), so steps are ``lr_device_prior``-sized."""
         cfg = self.config
         voxels, decoder = self.voxels, self.decoder
         dev = voxels.device
@@ -411,7 +415,7 @@ class Tracker:
         # that the rotation steps are lr_rot_ratio times the translation steps (radians vs metres)
         scale = torch.tensor([1.0] * 3 + [cfg.lr_rot_ratio] * 3, dtype=torch.float64, device=dev)
         z = torch.zeros(6, dtype=torch.float64, device=dev, requires_grad=True)
-        lr = cfg.lr_device_prior if prior_from_device else cfg.lr
+        lr = cfg.lr_device_prior if prior_from_device or close_start else cfg.lr
         opt = adam([z], lr=lr)
         prior_weight = cfg.device_prior_weight if prior_from_device else 0.0
         sigma_rad = np.deg2rad(cfg.device_prior_sigma_deg)
