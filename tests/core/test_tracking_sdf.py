@@ -370,7 +370,7 @@ def test_sdf_tracker_then_render_refinement(room):
     assert not res.lost and dt < 0.008 and da < 0.3, (dt, da)
     assert res.iterations == 2 * 6 + 5  # sdf levels x iterations (no early stop) + the render refinement's
     # the refinement starts at the sdf tracker's pose and takes small steps (lr_device_prior): it stays near it
-    # (with the first-frame learning rate, Adam's ~1 cm first steps left it 16 mm off the answer here)
+    # (with the render tracker's own lr, Adam's ~1 cm first steps left it 16 mm off the answer here)
     alone = tracker_for(cfg, mapper, method="sdf", sdf_converge_tol=0.0).track(frame_to_device(f, "cpu"),
                                                                             perturb(f.T_world_cam))
     assert pose_error(res.T_world_cam, alone.T_world_cam)[0] < 0.004
