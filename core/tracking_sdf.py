@@ -178,21 +178,18 @@ class DepthReference:
 
 
 def depth_reference(frame: FrameData, T_world_cam: np.ndarray, baseline_px: int = 2,
-                    with_gray: bool = False, images: GrayImages | None = None) -> DepthReference:
+                    images: GrayImages | None = None) -> DepthReference:
     """``frame`` tracked at ``T_world_cam [4, 4]`` (a host array, as tracking returns poses) as a
     :class:`DepthReference`. Its normals will come from central differences ``baseline_px`` pixels either
     side: 2 tilts them less with sensor noise than direct neighbours (TUM fr1 desk, seed 2: ATE 0.32 cm with
-    1, 0.22 with 2). ``with_gray``: keep its smoothed gray image (when it has colour); ``images``: keep these
-    instead (:func:`gray_images`, as the tracker made them for tracking this frame, with the blurred image when
-    its blurred stage is on)."""
+    1, 0.22 with 2). ``images``: its gray images for the photometric terms (:func:`gray_images`, as the tracker
+    made them for tracking this frame, with the blurred image when its blurred stage is on); None: none kept."""
     T_ref_world = torch.as_tensor(invert_pose(np.asarray(T_world_cam, dtype=np.float64)),
                                   device=frame.depth_m.device)
     b = baseline_px
     padded = torch.nn.functional.pad(frame.depth_m.to(torch.float32), (b, b, b, b))
     wp = padded.shape[1]
     offsets = torch.tensor([0, b, -b, b * wp, -b * wp], dtype=torch.int64, device=padded.device)
-    if images is None and with_gray and frame.color is not None:
-        images = gray_images(frame.color)
     gray, gray_blurred = (images.gray, images.blurred) if images is not None else (None, None)
     return DepthReference(padded, frame.K.to(torch.float32), T_ref_world, b, offsets, gray, gray_blurred)
 

@@ -196,7 +196,7 @@ def test_photometric_residuals_on_a_ramp():
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     color = torch.as_tensor(np.repeat((0.2 + slope * u)[..., None], 3, -1), dtype=torch.float32)
     data = FrameData(0, 0.0, torch.full((h, w), z0), color, torch.as_tensor(K), torch.arange(h * w))
-    ref = depth_reference(data, np.eye(4), with_gray=True)
+    ref = depth_reference(data, np.eye(4), images=gray_images(data.color))
     uu, vv = torch.meshgrid(torch.arange(8.0, w - 8), torch.arange(8.0, h - 8), indexing="xy")
     uu, vv = uu.reshape(-1), vv.reshape(-1)
     p_cam = torch.stack([(uu - K[0, 2]) / f * z0, (vv - K[1, 2]) / f * z0, torch.full_like(uu, z0)], -1)
@@ -218,7 +218,8 @@ def test_photometric_term_normal_equations_match_autograd_jacobian(room):
     (the 2x2 cell each point falls in and the occlusion test are held fixed)."""
     cap, cfg, mapper = room
     f, f_ref = cap[7], cap[6]
-    ref = depth_reference(frame_to_device(f_ref, "cpu"), f_ref.T_world_cam, with_gray=True)
+    ref_data = frame_to_device(f_ref, "cpu")
+    ref = depth_reference(ref_data, f_ref.T_world_cam, images=gray_images(ref_data.color))
     pts = sample_points(frame_to_device(f, "cpu"), 256, torch.Generator().manual_seed(0), with_gray=True)
     T = torch.as_tensor(perturb(f.T_world_cam, 0.05))
     w = 0.5
