@@ -1,5 +1,6 @@
-"""The decoder's execution options, measured: eager float32 (the reference) against ``torch.compile`` and
-mixed precision (``field.compile``, ``field.precision``), per tracking and per mapping iteration.
+"""The engine's execution options, measured: eager float32 (the reference) against ``torch.compile`` and
+mixed precision of the decoder (``field.compile``, ``field.precision``) and the compiled geometric tracker
+(``tracking.compile``), per tracking and per mapping iteration.
 
 Usage (from the repository root)::
 
@@ -11,7 +12,8 @@ poses (320x240 with the preset ``voxfusion run`` picks on a CPU, ``synthetic+cpu
 preset on CUDA, where the GPU targets are stated), then:
 
 * ``build_s``: that build, first compilation included (``torch.compile`` compiles on first use, and again
-  for each new input kind: with and without colour, with and without gradients);
+  for each new input kind: with and without colour, with and without gradients); ``tracking_build_s``: the
+  first tracked frame, the tracker's compilation included (one graph per solver stage);
 * ``mapping_ms_per_iter``: median over ``--rounds`` of :meth:`Mapper.optimize` (``--iters`` iterations), after
   a warm-up round;
 * ``tracking_ms_per_frame`` / ``tracking_ms_per_eval``: the geometric (``sdf``) tracker on the next frame from
@@ -42,6 +44,8 @@ import torch  # noqa: E402
 
 from bench.machine import machine_info  # noqa: E402
 from voxfusion.core import field as field_module  # noqa: E402
+from voxfusion.core import tracking_sdf  # noqa: E402
+from voxfusion.core.config import apply_overrides  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.eval.report import format_table, write_json  # noqa: E402
 from voxfusion.core.framedata import frame_to_device  # noqa: E402
@@ -52,12 +56,14 @@ from voxfusion.core.tracking import Tracker  # noqa: E402
 
 VARIANTS: dict[str, dict[str, object]] = {
     "float32 eager (reference)": {},
-    "bfloat16": {"precision": "bfloat16"},
-    "float16": {"precision": "float16"},
-    "compile": {"compile": True},
-    "compile + bfloat16": {"compile": True, "precision": "bfloat16"},
+    "bfloat16": {"field.precision": "bfloat16"},
+    "float16": {"field.precision": "float16"},
+    "compile": {"field.compile": True},
+    "compile + bfloat16": {"field.compile": True, "field.precision": "bfloat16"},
+    "tracking compile": {"tracking.compile": True},
 }
-"""Variant name -> :class:`~voxfusion.core.field.FieldConfig` options."""
+"""Variant name -> configuration options (``section.key``: the decoder's ``field.*``, the geometric tracker's
+``tracking.compile``)."""
 SMOKE = ["mapping.first_frame_iters=5", "mapping.iters=1", "mapping.rays_per_frame=64", "tracking.sdf_points=256",
          "tracking.sdf_iters=2", "field.sdf_hidden=16", "field.color_hidden=16", "field.geo_feature_dim=8"]
 """``--smoke`` overrides: the same code at tiny sizes."""
@@ -88,12 +94,15 @@ def _pose_error(T: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
 
 def measure_variant(base: VoxFusionConfig, options: dict[str, object], frames: list, map_frames: int,
                     iters: int, rounds: int) -> dict:
-    """Build a map with the decoder options ``options``, then time mapping and tracking on it."""
-    config = dataclasses.replace(base, field=dataclasses.replace(base.field, **options))
+    """Build a map with the configuration ``options`` (:data:`VARIANTS`), then time mapping and tracking on it."""
+    config = apply_overrides(base, [f"{key}={value}" for key, value in options.items()])
     device = torch.device(config.device)
-    if config.field.compile:  # a fresh compilation per variant: earlier variants' graphs and failures do not count
+    compiled = [fn for on, fn in ((config.field.compile, field_module.COMPILED_MLP),
+                                  (config.tracking.compile, tracking_sdf.COMPILED_LINEARIZE)) if on]
+    if compiled:  # a fresh compilation per variant: earlier variants' graphs and failures do not count
         torch._dynamo.reset()
-        field_module._COMPILE.update(fn=None, failed=False)
+        for fn in compiled:
+            fn.reset()
     t0 = time.perf_counter()
     mapper = make_mapper(config, device=device)
     for f in frames[:map_frames]:
@@ -111,7 +120,10 @@ def measure_variant(base: VoxFusionConfig, options: dict[str, object], frames: l
     prior = frames[map_frames - 1].T_world_cam
     # the previous frame: the reference of the frame-to-frame terms, as in a running session
     tracker.remember(frame_to_device(frames[map_frames - 1], device), prior)
-    result = tracker.track(data, prior)  # warm-up
+    t0 = time.perf_counter()
+    result = tracker.track(data, prior)  # warm-up (and, with tracking.compile, the tracker's compilation)
+    _sync(device)
+    tracking_build_s = time.perf_counter() - t0
     evals = result.iterations + tracker.sdf_stages()  # each solver stage evaluates its start once
     tracking_ms = _median_ms(lambda: tracker.track(data, prior), rounds, device)
     err_mm, err_deg = _pose_error(np.asarray(tracker.track(data, prior).T_world_cam), target.T_world_cam)
@@ -125,12 +137,13 @@ def measure_variant(base: VoxFusionConfig, options: dict[str, object], frames: l
         sdf_ref, _, _ = mapper.query(pts)
         mapper.decoder.config = fast_config
     dev_mm = float((sdf - sdf_ref)[valid].abs().max()) * 1e3 if bool(valid.any()) else float("nan")
-    return {"options": options, "build_s": build_s, "mapping_ms_per_iter": mapping_ms,
+    return {"options": options, "build_s": build_s, "tracking_build_s": tracking_build_s,
+            "mapping_ms_per_iter": mapping_ms,
             "tracking_ms_per_frame": tracking_ms, "tracking_ms_per_eval": tracking_ms / max(evals, 1),
             "tracking_evals": evals, "tracking_error_mm": err_mm, "tracking_error_deg": err_deg,
             "sdf_dev_mm": dev_mm,
-            # True: torch.compile failed and this variant's figures are the eager decoder's (one warning logged)
-            "compile_fell_back": bool(config.field.compile and field_module._COMPILE["failed"])}
+            # True: torch.compile failed and this variant's figures are eager ones (one warning logged)
+            "compile_fell_back": any(fn.failed for fn in compiled)}
 
 
 def _surface_points(data, T_world_cam: np.ndarray, n: int, device: torch.device) -> torch.Tensor:  # noqa: ANN001
@@ -170,6 +183,7 @@ def print_table(result: dict) -> None:
     rows = [{"variant": name, "map ms/it": r["mapping_ms_per_iter"], "x map": r.get("mapping_speedup"),
              "track ms/frame": r["tracking_ms_per_frame"], "x track": r.get("tracking_speedup"),
              "track err mm": r["tracking_error_mm"], "sdf dev mm": r["sdf_dev_mm"], "build s": r["build_s"],
+             "track build s": r["tracking_build_s"],
              "eager fallback": "yes" if r.get("compile_fell_back") else ""}
             for name, r in result["variants"].items()]
     print(format_table(rows, columns=list(rows[0]), float_fmt=".2f"))

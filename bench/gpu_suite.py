@@ -21,8 +21,9 @@ Sections (every timed region sits between ``torch.cuda.synchronize()`` calls, af
 * ``render``: latency of a 256x192 depth image (:meth:`SlamSystem.render_depth`, AR occlusion) of the
   synthetic session's final map; ``mesh``: :meth:`SlamSystem.mesh` time and size.
 * ``memory``: peak ``torch.cuda.max_memory_allocated`` (and RSS) of each section.
-* ``accel``: the decoder's execution options (``torch.compile``, bfloat16 / float16 mixed precision) against
-  the float32 eager reference, per tracking and mapping iteration (:mod:`bench.bench_accel`): which to keep.
+* ``accel``: the execution options (the decoder's ``torch.compile`` and bfloat16 / float16 mixed precision,
+  the compiled geometric tracker) against the float32 eager reference, per tracking and mapping iteration
+  (:mod:`bench.bench_accel`): which to keep.
 * ``capacity``: how many concurrent realtime sessions the GPU holds at 30 Hz tracking: 1, 2, 4, ... sessions
   (one process each, as the server runs them; ``--capacity-isolation thread`` for one process), each fed
   30 Hz for ``--capacity-seconds``; a session *holds* 30 Hz when it tracks at least 97 % of that
@@ -529,7 +530,7 @@ def _print_tables(results: dict) -> None:
                   "value": rm["render_ms_median"]},
                  {"what": f"mesh extraction [ms] ({rm['mesh_faces']} faces)", "value": rm["mesh_ms"]}]
     for name, r in results.get("accel", {}).get("variants", {}).items():
-        rows.append({"what": f"decoder {name}: mapping / tracking speed-up vs float32 eager",
+        rows.append({"what": f"{name}: mapping / tracking speed-up vs float32 eager",
                      "value": f"{r['mapping_speedup']:.2f}x / {r['tracking_speedup']:.2f}x"})
     if "capacity" in results:
         c = results["capacity"]

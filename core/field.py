@@ -19,7 +19,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import threading
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,6 +27,7 @@ from typing import Literal
 import torch
 from torch import nn
 
+from .compiled import CompiledFunction
 from .errors import ConfigError, ShapeError, ValidationError
 from .voxels import CORNER_OFFSETS, VoxelMap
 
@@ -218,13 +218,7 @@ def _mlp(sdf_net: nn.Module, color_net: nn.Module | None, x: torch.Tensor
 def _run_mlp(sdf_net: nn.Module, color_net: nn.Module | None, x: torch.Tensor, compiled: bool
              ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """:func:`_mlp`, compiled when asked and compilation works (a failure: one warning, then eager)."""
-    mlp = _compiled_mlp() if compiled else None
-    if mlp is not None:
-        try:
-            return mlp(sdf_net, color_net, x)
-        except Exception as e:  # noqa: BLE001 - a compiler failure: warn once, stay eager
-            _compile_failed(e)
-    return _mlp(sdf_net, color_net, x)
+    return COMPILED_MLP(sdf_net, color_net, x) if compiled else _mlp(sdf_net, color_net, x)
 
 
 def _precision_context(device_type: str, precision: str) -> contextlib.AbstractContextManager:
@@ -234,27 +228,8 @@ def _precision_context(device_type: str, precision: str) -> contextlib.AbstractC
     return torch.autocast(device_type=device_type, dtype=getattr(torch, precision))
 
 
-_COMPILE_LOCK = threading.Lock()
-_COMPILE: dict[str, Callable | None | bool] = {"fn": None, "failed": False}
-
-
-def _compiled_mlp() -> Callable | None:
-    """The compiled :func:`_mlp` (built on first use), or None once compilation has failed."""
-    with _COMPILE_LOCK:
-        if _COMPILE["failed"]:
-            return None
-        if _COMPILE["fn"] is None:
-            _COMPILE["fn"] = torch.compile(_mlp, dynamic=True)
-        return _COMPILE["fn"]  # type: ignore[return-value]
-
-
-def _compile_failed(error: Exception) -> None:
-    """Fall back to the eager decoder for the rest of the process, with one warning naming the cause."""
-    with _COMPILE_LOCK:
-        if not _COMPILE["failed"]:
-            log.warning("field.compile: torch.compile failed (%s: %s); the decoder runs eager",
-                        type(error).__name__, str(error).splitlines()[0] if str(error) else "")
-        _COMPILE["failed"] = True
+COMPILED_MLP = CompiledFunction(_mlp, "field.compile", log)
+"""The compiled :func:`_mlp` (``field.compile``): one for every decoder instance (snapshots are copies)."""
 
 
 def local_coords(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor) -> torch.Tensor:

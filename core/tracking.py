@@ -199,6 +199,13 @@ class TrackingConfig:
     sdf tracker took ~130 ms per frame with two threads and ~80 ms with one. On the 2-core Intel Xeon the project
     moved to, two threads were faster (2026-11-24, synthetic room: 14.0 against 16.3 ms per frame); the default
     stays 1 until both kinds of CPU can be measured again."""
+    compile: bool = False
+    """``sdf`` method: run each solver iteration's residuals and normal equations (:func:`.tracking_sdf.linearize`)
+    through :func:`torch.compile` (dynamic shapes; one graph per solver stage, compiled on a session's first
+    frames; eager with one warning where compilation fails). Off in every preset: on the 2-core AMD EPYC a call
+    at 4096 points took 3.2 instead of 6.8 ms and a session's frames ~8 ms less of ~90, but compiling took 7 s
+    per process with torch's on-disk cache warm and ~30 s cold, more than a run of a few hundred frames saves
+    (``python bench/bench_accel.py``, variant ``tracking compile``; ``make bench-gpu`` measures it on a GPU)."""
     refine_iters: int = 0
     """``sdf`` method: iterations of the render tracker run after it (0: none), with the small steps of
     ``lr_device_prior`` (it starts at the ``sdf`` tracker's pose, a few millimetres from the answer)."""
@@ -384,7 +391,8 @@ class Tracker:
             inlier_m=cfg.sdf_inlier_m, w_color=cfg.sdf_w_color,
             prior_info=(w / cfg.device_prior_sigma_m ** 2, w / sigma_rad ** 2),
             w_frame=cfg.sdf_w_frame, frame_max_m=cfg.sdf_frame_max_m,
-            w_photo=self._photo_weight(), huber_photo=cfg.sdf_huber_photo, w_photo_blurred=self._photo_blur_weight())
+            w_photo=self._photo_weight(), huber_photo=cfg.sdf_huber_photo, w_photo_blurred=self._photo_blur_weight(),
+            compile=cfg.compile)
         T0 = torch.as_tensor(T_prior, dtype=torch.float64, device=dev)
         sol = solve_pose(voxels, decoder, levels, T0, solver, self._reference)  # None unless a term needs one
         # the one read-back of the frame

@@ -43,16 +43,20 @@ accepted steps), in the same information form as the data term.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
+from .compiled import CompiledFunction
 from .field import SDFDecoder, interpolate_unchecked, local_coords, sdf_with_gradient
 from .framedata import FrameData, sample_valid_pixels
 from .geometry import invert_pose
 from .lie import perturb_right
 from .voxels import VoxelMap
+
+log = logging.getLogger("voxfusion.tracking")
 
 __all__ = ["SdfSolverConfig", "SdfPoints", "SdfSolution", "DepthReference", "GrayImages", "depth_reference",
            "frame_residuals", "photometric_residuals", "gray_images", "smoothed_gray", "gaussian_blur",
@@ -102,6 +106,8 @@ class SdfSolverConfig:
     """Weight of the photometric term in a stage of its own before the finest level, on the finest level's
     points, against the reference's blurred gray image (``DepthReference.gray_blurred``; needs one); that
     stage ends at ``coarse_converge_tol``. 0: no such stage."""
+    compile: bool = False
+    """Run :func:`linearize` through :func:`torch.compile` (:data:`COMPILED_LINEARIZE`; eager where that fails)."""
 
 
 @dataclass
@@ -455,6 +461,12 @@ def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Te
     return cost.sum() / n, Jw.T @ J / n, Jw.T @ rs / n, r, ok
 
 
+COMPILED_LINEARIZE = CompiledFunction(linearize, "tracking.compile", log)
+""":func:`linearize` compiled (``tracking.compile``): one graph per solver stage, shapes dynamic (the map
+grows between frames). Each iteration's ~100 small operators become a few fused loops; it is tested against
+:func:`linearize` itself."""
+
+
 def _stages(levels: list[SdfPoints], cfg: SdfSolverConfig, reference: DepthReference | None
             ) -> list[tuple[SdfPoints, SdfSolverConfig, DepthReference | None]]:
     """The solver's stages, coarse first: ``(points, options, reference)``. The coarser levels are geometry
@@ -489,6 +501,7 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
     cost_best = torch.zeros((), dtype=torch.float64, device=dev)
     iterations = 0
     stages = _stages(levels, cfg, reference)
+    lin = COMPILED_LINEARIZE if cfg.compile else linearize
     for stage, (pts, lcfg, lref) in enumerate(stages):
         finest = stage == len(stages) - 1
         tol = cfg.converge_tol if finest or cfg.coarse_converge_tol is None else cfg.coarse_converge_tol
@@ -496,7 +509,7 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
         # the prior's weight is per point of the data term's mean, so it does not depend on N
         def evaluate(T: torch.Tensor, xi: torch.Tensor, pts: SdfPoints = pts, lcfg: SdfSolverConfig = lcfg,
                      lref: DepthReference | None = lref) -> tuple[torch.Tensor, ...]:
-            cost, H, b, r, ok = linearize(voxels, decoder, pts, T, lcfg, lref)
+            cost, H, b, r, ok = lin(voxels, decoder, pts, T, lcfg, lref)
             H = H + torch.diag(info) / n_points
             b = b + info * xi / n_points
             cost = cost + 0.5 * (info * xi * xi).sum() / n_points

@@ -37,7 +37,7 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path):
     cap = result["capacity"]
     assert cap["isolation"] == "thread" and 1 <= len(cap["rows"]) <= 2 and cap["rows"][0]["sessions"] == 1
     assert set(result["memory"]) == {"iterations", "realtime/synthetic", "render_mesh", "accel", "capacity"}
-    # the decoder's execution options, each measured against the float32 eager reference on the same map
+    # the execution options, each measured against the float32 eager reference on the same map
     accel = result["accel"]["variants"]
     assert set(accel) == set(bench_accel.VARIANTS)
     assert all(r["mapping_ms_per_iter"] > 0 and r["tracking_ms_per_frame"] > 0 for r in accel.values())
@@ -46,6 +46,10 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path):
     assert accel["float32 eager (reference)"]["compile_fell_back"] is False
     assert isinstance(accel["compile"]["compile_fell_back"], bool)  # True would say the row is the eager decoder's
     assert 0.0 < accel["bfloat16"]["sdf_dev_mm"] < 2.0  # rounding, but within the 1 mm-scale of the field
+    # the compiled tracker: the same solver, so the same pose up to rounding (0.33 mm from ground truth here)
+    tracked = accel["tracking compile"]
+    assert isinstance(tracked["compile_fell_back"], bool) and tracked["tracking_build_s"] > 0
+    assert abs(tracked["tracking_error_mm"] - accel["float32 eager (reference)"]["tracking_error_mm"]) < 0.05
 
 
 def test_capacity_worker_waits_for_go_and_reports_one_session():

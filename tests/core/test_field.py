@@ -251,16 +251,17 @@ def test_compile_failure_leaves_one_warning_and_the_eager_decoder(monkeypatch, c
 
     from voxfusion.core import field
 
-    # a real compiler failure: inductor is pointed at a C++ compiler that does not exist
-    monkeypatch.setattr(inductor_config.cpp, "cxx", ("/nonexistent/voxfusion-c++",))
-    monkeypatch.setattr(field, "_COMPILE", {"fn": None, "failed": False})
-    monkeypatch.setattr(inductor_config, "force_disable_caches", True)  # no cached artefact stands in for it
+    monkeypatch.setattr(field.COMPILED_MLP, "_compiled", None)
+    monkeypatch.setattr(field.COMPILED_MLP, "failed", False)
     torch._dynamo.reset()
     ref, fast = _decoder_pair(sdf_layers=3, compile=True)  # a graph no earlier test compiled
     feats = torch.randn(64, 16, generator=torch.Generator().manual_seed(4))
-    with caplog.at_level("WARNING", logger="voxfusion.field"):
+    # a real compiler failure: inductor is pointed at a C++ compiler that does not exist, and no cached artefact
+    # stands in for it (the config's own patch restores both: ``force_disable_caches`` is an alias there)
+    with inductor_config.patch({"cpp.cxx": ("/nonexistent/voxfusion-c++",), "force_disable_caches": True}), \
+            caplog.at_level("WARNING", logger="voxfusion.field"):
         got = [fast(feats)[0], fast(feats)[0]]
-    assert field._COMPILE["failed"] is True
+    assert field.COMPILED_MLP.failed is True
     assert len([r for r in caplog.records if "field.compile" in r.getMessage()]) == 1
     for g in got:
         torch.testing.assert_close(g, ref(feats)[0], atol=0, rtol=0)

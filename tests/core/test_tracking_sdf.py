@@ -495,3 +495,33 @@ def test_spd_solvers_match_lapack_and_step_nowhere_on_a_degenerate_system():
     assert torch.equal(solve_spd(indefinite, torch.ones(6, dtype=torch.float64)), torch.zeros(6, dtype=torch.float64))
     nan = torch.full((6, 6), float("nan"), dtype=torch.float64)
     assert torch.equal(solve_spd(nan, torch.ones(6, dtype=torch.float64)), torch.zeros(6, dtype=torch.float64))
+
+
+def test_compiled_linearize_matches_linearize_as_the_map_grows(room):
+    """``tracking.compile``: the compiled residuals and normal equations (every term: SDF, frame-to-frame,
+    photometric) are the plain function's, and stay so when the map has grown between calls (dynamic shapes:
+    its tables change size every frame)."""
+    from voxfusion.core.compiled import CompiledFunction
+
+    cap, cfg, mapper = room
+    f, f_ref = cap[7], cap[6]
+    ref_data = frame_to_device(f_ref, "cpu")
+    ref = depth_reference(ref_data, f_ref.T_world_cam, images=gray_images(ref_data.color))
+    pts = sample_points(frame_to_device(f, "cpu"), 512, torch.Generator().manual_seed(0), with_gray=True)
+    T = torch.as_tensor(perturb(f.T_world_cam, 0.1))
+    scfg = SdfSolverConfig(w_frame=1.0, w_photo=0.1)
+    compiled = CompiledFunction(linearize, "tracking.compile")
+    grown = mapper.voxels.snapshot()
+    grown.allocate(torch.rand(200, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float32) * 4 - 2)
+    for voxels in (mapper.voxels.snapshot(), grown):
+        want = linearize(voxels, mapper.decoder, pts, T, scfg, ref)
+        got = compiled(voxels, mapper.decoder, pts, T, scfg, ref)
+        assert not compiled.failed
+        cost, H, b, r, ok = want
+        assert int(ok.sum()) > 100 and float(H.abs().max()) > 0
+        torch.testing.assert_close(got[0], cost, rtol=1e-5, atol=1e-9)
+        torch.testing.assert_close(got[1], H, rtol=1e-4, atol=1e-6 * float(H.abs().max()))
+        torch.testing.assert_close(got[2], b, rtol=1e-4, atol=1e-6 * float(b.abs().max()))
+        torch.testing.assert_close(got[3], r, rtol=1e-4, atol=1e-6)
+        assert torch.equal(got[4], ok)
+    assert grown.n_voxels > mapper.voxels.n_voxels
