@@ -202,10 +202,11 @@ class TrackingConfig:
     compile: bool = False
     """``sdf`` method: run each solver iteration's residuals and normal equations (:func:`.tracking_sdf.linearize`)
     through :func:`torch.compile` (dynamic shapes; one graph per solver stage, compiled on a session's first
-    frames; eager with one warning where compilation fails). Off in every preset: on the 2-core AMD EPYC a call
-    at 4096 points took 3.2 instead of 6.8 ms and a session's frames ~8 ms less of ~90, but compiling took 7 s
-    per process with torch's on-disk cache warm and ~30 s cold, more than a run of a few hundred frames saves
-    (``python bench/bench_accel.py``, variant ``tracking compile``; ``make bench-gpu`` measures it on a GPU)."""
+    frames, whose realtime feed is dropped meanwhile; eager with one warning where compilation fails). Off in
+    every preset: on the 2-core AMD EPYC a call at 4096 points took 3.2 instead of 6.8 ms and a session's
+    frames ~8 ms less of ~90, but compiling took 7 s per process with torch's on-disk cache warm and ~30 s
+    cold, more than a run of a few hundred frames saves (``python bench/bench_accel.py``, variant ``tracking
+    compile``; ``make bench-gpu`` measures it on a GPU)."""
     refine_iters: int = 0
     """``sdf`` method: iterations of the render tracker run after it (0: none), with the small steps of
     ``lr_device_prior`` (it starts at the ``sdf`` tracker's pose, a few millimetres from the answer)."""
