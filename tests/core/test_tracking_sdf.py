@@ -213,15 +213,21 @@ def test_photometric_residuals_on_a_ramp():
     assert not photometric_residuals(ref, in_front, gray, torch.eye(4, dtype=torch.float64), 0.05)[2].any()
 
 
-def test_photometric_term_normal_equations_match_autograd_jacobian(room):
-    """The photometric term adds J^T W J and J^T W r, J from autograd of the bilinear-interpolated residuals
-    (the 2x2 cell each point falls in and the occlusion test are held fixed)."""
-    cap, cfg, mapper = room
+def photometric_setup(room, n_points, perturbation):
+    """The room's map, frame 6 as the reference (with gray images), frame 7's points (with gray levels) and a
+    pose ``perturbation`` x :func:`perturb` away from frame 7's."""
+    cap, _, mapper = room
     f, f_ref = cap[7], cap[6]
     ref_data = frame_to_device(f_ref, "cpu")
     ref = depth_reference(ref_data, f_ref.T_world_cam, images=gray_images(ref_data.color))
-    pts = sample_points(frame_to_device(f, "cpu"), 256, torch.Generator().manual_seed(0), with_gray=True)
-    T = torch.as_tensor(perturb(f.T_world_cam, 0.05))
+    pts = sample_points(frame_to_device(f, "cpu"), n_points, torch.Generator().manual_seed(0), with_gray=True)
+    return mapper, ref, pts, torch.as_tensor(perturb(f.T_world_cam, perturbation))
+
+
+def test_photometric_term_normal_equations_match_autograd_jacobian(room):
+    """The photometric term adds J^T W J and J^T W r, J from autograd of the bilinear-interpolated residuals
+    (the 2x2 cell each point falls in and the occlusion test are held fixed)."""
+    mapper, ref, pts, T = photometric_setup(room, n_points=256, perturbation=0.05)
     w = 0.5
     plain = SdfSolverConfig(huber_m=1.0, max_residual_m=0.08)
     both = SdfSolverConfig(huber_m=1.0, max_residual_m=0.08, w_photo=w, huber_photo=100.0)  # Huber off
@@ -503,12 +509,7 @@ def test_compiled_linearize_matches_linearize_as_the_map_grows(room):
     its tables change size every frame)."""
     from voxfusion.core.compiled import CompiledFunction
 
-    cap, cfg, mapper = room
-    f, f_ref = cap[7], cap[6]
-    ref_data = frame_to_device(f_ref, "cpu")
-    ref = depth_reference(ref_data, f_ref.T_world_cam, images=gray_images(ref_data.color))
-    pts = sample_points(frame_to_device(f, "cpu"), 512, torch.Generator().manual_seed(0), with_gray=True)
-    T = torch.as_tensor(perturb(f.T_world_cam, 0.1))
+    mapper, ref, pts, T = photometric_setup(room, n_points=512, perturbation=0.1)
     scfg = SdfSolverConfig(w_frame=1.0, w_photo=0.1)
     compiled = CompiledFunction(linearize, "tracking.compile")
     grown = mapper.voxels.snapshot()
