@@ -197,8 +197,9 @@ class TrackingConfig:
     """Intra-op CPU threads while tracking in offline mode (0: leave torch's setting). The tracker's operations
     are small (a few thousand points), so thread wake-ups outweigh the work: on the 2-core development CPU the
     sdf tracker took ~130 ms per frame with two threads and ~80 ms with one. On the 2-core Intel Xeon the project
-    moved to, two threads were faster (2026-11-24, synthetic room: 14.0 against 16.3 ms per frame); the default
-    stays 1 until both kinds of CPU can be measured again."""
+    moved to, two threads were faster (2026-11-24, synthetic room: 14.0 against 16.3 ms per frame); on the 2-core
+    AMD EPYC of 2026-11-25 whole frames with one and two threads could not be told apart (4 A/B pairs within
+    its +-10 % noise; `docs/engine-history.md`), so the default stays 1."""
     compile: bool = False
     """``sdf`` method: run each solver iteration's residuals and normal equations (:func:`.tracking_sdf.linearize`)
     through :func:`torch.compile` (dynamic shapes; one graph per solver stage, compiled on a session's first
