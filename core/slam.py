@@ -11,7 +11,8 @@ one of two modes (``VoxFusionConfig.mode``):
   its optimisation round on the newest one, and then publishes a map snapshot that the tracker picks up
   by a reference swap (index tables shared, embeddings and decoder copied once per round; see
   :meth:`~.voxels.VoxelMap.snapshot`). The tracker never waits for mapping except for the very first
-  frame, which initialises the map. On CUDA each worker runs on its own stream.
+  frame, which initialises the map. On CUDA each worker runs on its own stream; on a CPU torch's intra-op
+  threads are halved while they run, so the two workers do not oversubscribe the cores (``realtime_cpu_threads``).
 
 Poses are camera-to-world ``[4, 4]`` float64, OpenCV axes, metres. Keyframe poses refined by mapping
 flow back into the trajectory; other frames follow their reference keyframe (the newest keyframe when
@@ -23,6 +24,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -53,9 +55,26 @@ from .trajectory import Trajectory
 from .voxel_export import voxels_npz_bytes, voxels_ply_bytes
 from .voxels import VoxelMap
 
-__all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem"]
+__all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem", "realtime_thread_count", "usable_cpu_count"]
 
 log = logging.getLogger("voxfusion.slam")
+
+
+def usable_cpu_count() -> int:
+    """CPU cores this process may run on (its affinity where the platform says, else ``os.cpu_count()``)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def realtime_thread_count(setting: int | None, current: int, usable_cores: int) -> int:
+    """Torch intra-op threads for a realtime session's two workers on a CPU (``realtime_cpu_threads``):
+    ``setting`` when > 0, ``current`` (torch's setting) when 0, and when None half the usable cores but
+    never more than ``current`` (at least one)."""
+    if setting is None:
+        return max(1, min(current, usable_cores // 2))
+    return setting if setting > 0 else current
 
 
 @dataclass
@@ -226,6 +245,7 @@ class SlamSystem:
         self._streams: dict[str, torch.cuda.Stream] = {}
         self._good_tail: deque[FrameRecord] = deque(maxlen=2)  # the last two frames not lost, for priors
         self._first_good: FrameRecord | None = None  # the frame the map started with (world_axes)
+        self._threads_before: tuple[int, int] | None = None  # (torch's threads, the workers') while they run
 
     # ------------------------------------------------------------------ shared helpers
     def _init_engine(self, frame: RGBDFrame) -> None:
@@ -418,6 +438,7 @@ class SlamSystem:
             raise ValidationError("mode", "start() is for realtime mode")
         if self._threads:
             return
+        self._set_worker_threads()
         if self.device.type == "cuda":
             self._streams = {"tracking": torch.cuda.Stream(self.device), "mapping": torch.cuda.Stream(self.device)}
         self._threads = [threading.Thread(target=self._worker, args=(name, fn), name=f"voxfusion-{name}",
@@ -425,6 +446,23 @@ class SlamSystem:
                          for name, fn in (("tracking", self._tracking_loop), ("mapping", self._mapping_loop))]
         for th in self._threads:
             th.start()
+
+    def _set_worker_threads(self) -> None:
+        """Realtime mode on a CPU: torch's intra-op threads for the workers (``realtime_cpu_threads``, see
+        :func:`realtime_thread_count`); :meth:`_restore_threads` puts torch's setting back when they stop."""
+        if self.device.type != "cpu":
+            return
+        before = torch.get_num_threads()
+        n = realtime_thread_count(self.config.realtime_cpu_threads, before, usable_cpu_count())
+        if n != before:
+            torch.set_num_threads(n)
+            self._threads_before = (before, n)
+
+    def _restore_threads(self) -> None:
+        """Undo :meth:`_set_worker_threads`, unless someone changed torch's setting since."""
+        saved, self._threads_before = self._threads_before, None
+        if saved is not None and torch.get_num_threads() == saved[1]:
+            torch.set_num_threads(saved[0])
 
     def submit(self, frame: RGBDFrame) -> None:
         """Realtime mode: hand a frame to the tracker (never blocks on tracking or mapping)."""
@@ -513,6 +551,7 @@ class SlamSystem:
                 if th.is_alive():
                     raise EngineFailedError(f"{th.name} did not finish within {timeout_s} s")
             self._threads = []
+            self._restore_threads()
         self._raise_if_failed()
         if self.mapper is not None and self.mapper.keyframes:  # no usable frame yet: no map to finish
             self.mapper.finish()
@@ -529,6 +568,7 @@ class SlamSystem:
         for th in self._threads:
             th.join(timeout=60)
         self._threads = []
+        self._restore_threads()
 
     def _raise_if_failed(self) -> None:
         if self.error is not None:

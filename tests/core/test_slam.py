@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
-from voxfusion.core.errors import ValidationError
+from voxfusion.core.errors import ConfigError, ValidationError
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.lie import se3_exp
 from voxfusion.core.reconstruct import make_mapper
-from voxfusion.core.slam import SlamSystem
+from voxfusion.core.slam import SlamSystem, realtime_thread_count, usable_cpu_count
 from voxfusion.core.slam_config import load_preset
 from voxfusion.core.tracking import Tracker, TrackingConfig, predict_pose
 
@@ -167,11 +167,20 @@ def test_lost_frame_is_flagged_and_not_fused(capture):
 
 def test_realtime_mode_runs_concurrently_and_shuts_down_cleanly(capture):
     slam = SlamSystem(load_preset("cpu-small", TINY + ["mode=realtime"]))
-    seen = []
-    slam.on_pose = seen.append
+    seen, worker_threads = [], []
+    threads_before = torch.get_num_threads()
+
+    def on_pose(rec):
+        seen.append(rec)
+        worker_threads.append(torch.get_num_threads())  # what the tracking worker's operators run with
+
+    slam.on_pose = on_pose
     for f in capture.frames():
         slam.submit(f)
     slam.finish(timeout_s=300)
+    expected = realtime_thread_count(None, threads_before, usable_cpu_count())
+    assert worker_threads and set(worker_threads) == {expected}
+    assert torch.get_num_threads() == threads_before  # put back once the workers stopped
     st = slam.stats()
     assert st.frames_received == len(capture)
     assert st.frames_tracked + st.frames_dropped == len(capture)
@@ -180,6 +189,17 @@ def test_realtime_mode_runs_concurrently_and_shuts_down_cleanly(capture):
     assert len(slam.mesh().faces) > 0
     with pytest.raises(Exception, match="finishing or closed"):
         slam.submit(capture[0])
+
+
+def test_realtime_thread_count_halves_the_cores_without_raising_a_lower_setting():
+    assert realtime_thread_count(None, current=2, usable_cores=2) == 1  # each worker one of the two cores
+    assert realtime_thread_count(None, current=16, usable_cores=16) == 8
+    assert realtime_thread_count(None, current=2, usable_cores=16) == 2  # a server worker given 2 keeps 2
+    assert realtime_thread_count(None, current=1, usable_cores=1) == 1
+    assert realtime_thread_count(0, current=4, usable_cores=8) == 4  # 0: torch's setting
+    assert realtime_thread_count(3, current=4, usable_cores=8) == 3
+    with pytest.raises(ConfigError, match="realtime_cpu_threads"):
+        load_preset("cpu-small", ["realtime_cpu_threads=-1"])
 
 
 def test_constant_velocity_prior_stretches_over_skipped_frames():
