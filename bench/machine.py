@@ -28,6 +28,8 @@ from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
+from voxfusion.core.cpu import usable_cpu_count
+
 __all__ = ["MemoryUsage", "PeakMemory", "current_rss_mb", "machine_info"]
 
 _MB = 1024.0 * 1024.0
@@ -70,13 +72,6 @@ def _version(dist: str) -> str | None:
         return None
 
 
-def _usable_cores() -> int | None:
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count()
-
-
 def machine_info() -> dict[str, object]:
     """Describe this machine and the software stack, without hostname or user names.
 
@@ -89,7 +84,7 @@ def machine_info() -> dict[str, object]:
     info: dict[str, object] = {
         "cpu_model": _cpu_model(),
         "cpu_logical_cores": os.cpu_count(),
-        "cpu_usable_cores": _usable_cores(),
+        "cpu_usable_cores": usable_cpu_count(),
         "ram_total_gb": _ram_total_gb(),
         "os": f"{platform.system()} {platform.release()} ({platform.machine()})",
         "python": platform.python_version(),

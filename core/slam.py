@@ -24,7 +24,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import logging
-import os
 import threading
 import time
 from collections import deque
@@ -37,6 +36,7 @@ import numpy as np
 import torch
 import trimesh
 
+from .cpu import usable_cpu_count
 from .datasets.frame import RGBDFrame
 from .errors import EngineFailedError, MapNotReadyError, ValidationError
 from .field import SDFDecoder
@@ -55,17 +55,9 @@ from .trajectory import Trajectory
 from .voxel_export import voxels_npz_bytes, voxels_ply_bytes
 from .voxels import VoxelMap
 
-__all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem", "realtime_thread_count", "usable_cpu_count"]
+__all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem", "realtime_thread_count"]
 
 log = logging.getLogger("voxfusion.slam")
-
-
-def usable_cpu_count() -> int:
-    """CPU cores this process may run on (its affinity where the platform says, else ``os.cpu_count()``)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def realtime_thread_count(setting: int | None, current: int, usable_cores: int) -> int:

@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 import torch
 
+from voxfusion.core.cpu import usable_cpu_count
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import ConfigError, ValidationError
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.lie import se3_exp
 from voxfusion.core.reconstruct import make_mapper
-from voxfusion.core.slam import SlamSystem, realtime_thread_count, usable_cpu_count
+from voxfusion.core.slam import SlamSystem, realtime_thread_count
 from voxfusion.core.slam_config import load_preset
 from voxfusion.core.tracking import Tracker, TrackingConfig, predict_pose
 
