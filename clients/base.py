@@ -217,7 +217,7 @@ class BaseClient(ABC):
                 ``["tracking.iters=10", ...]``.
             preset: configuration preset name on the server (``iphone``, ``tum``, ...), ``None``: its default.
             mode: ``realtime`` (default on the server: may skip frames to keep up) or ``offline`` (every
-                frame, in order).
+                frame tracked and mapped, in order: the same frames give the same poses every time).
 
         Raises:
             ServerError: refused (403 wrong API key, 422 unknown config key, 503 too many sessions).

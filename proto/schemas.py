@@ -104,7 +104,8 @@ class SessionCreate(_Model):
     """Overrides of the engine configuration as a nested object, e.g. ``{"mapping": {"iters": 10},
     "voxel_size_m": 0.1}``; keys are checked by the server (an unknown key is an error naming it)."""
     mode: SessionMode = SessionMode.realtime
-    """``realtime`` (may drop frames to keep up) or ``offline`` (every frame, in order)."""
+    """``realtime`` (may drop frames to keep up) or ``offline`` (every frame tracked and mapped, in order,
+    before the next: reproducible, as ``voxfusion run``)."""
 
 
 class SessionCreated(_Model):

@@ -8,10 +8,13 @@ frame bytes are never copied between the processes), feeds them to a :class:`Sla
 periodic checkpoints and, at :meth:`~EngineHost.finish`, the final outputs, and answers the requests that
 need the map (status, poses, render, mesh, voxels).
 
-Feeding (the old in-process feeder's rules): the first ``spec.replay`` records (a resume or a worker
-restart replays what was recorded) and every record of an ``offline`` session are handed to the engine
-only once the previous one is tracked; records of a ``realtime`` session are handed over at once, and
-its tracker drops stale ones. Records in ``spec.skip`` (frames an earlier engine failed on) are skipped.
+Feeding: the engine runs in the session's mode. An ``offline`` session's engine is in offline mode: each
+record is tracked and mapped (:meth:`SlamSystem.process`) before the next is read, so every frame meets the
+map of all frames before it, as in ``voxfusion run``, and the same recording gives the same trajectory and
+map every time. A ``realtime`` session's engine runs its tracking and mapping workers: records are handed
+over at once and its tracker drops stale ones, except the first ``spec.replay`` records (a resume or a
+worker restart replays what was recorded), which are handed over only once the previous one is tracked.
+Records in ``spec.skip`` (frames an earlier engine failed on) are skipped.
 
 Events sent with ``emit`` (from the host's threads; the API process dispatches them):
 
@@ -68,13 +71,16 @@ class HostSpec:
 
     Attributes:
         session_id: the session's id (log lines).
-        mode: ``realtime`` or ``offline`` (the session's mode; the engine itself always runs realtime).
+        mode: ``realtime`` or ``offline`` (the session's mode, and its engine's: ``config["mode"]`` is set to it).
         config: the engine configuration as a dict (:func:`~voxfusion.core.config.config_to_dict`).
         folder: ``<data_dir>/sessions/<id>``: the recording is read from it, checkpoints written to it.
         replay: the first ``replay`` records are replayed (paced) before live frames.
         skip: record positions never handed to the engine (frames an earlier engine failed on).
         checkpoint_interval_s, checkpoint_keyframes: when the running map is checkpointed.
         torch_threads: intra-op threads of torch in a worker process (0: torch's default).
+        shared_process: the host runs on threads of a process that other sessions' engines share
+            (``--session-workers thread``): its engine leaves torch's process-wide thread count alone
+            (``tracking.cpu_threads`` and ``realtime_cpu_threads`` 0), so sessions never reset each other's.
     """
 
     session_id: str
@@ -86,6 +92,7 @@ class HostSpec:
     checkpoint_interval_s: float = 30.0
     checkpoint_keyframes: int = 10
     torch_threads: int = 0
+    shared_process: bool = False
 
 
 class EngineHost:
@@ -98,10 +105,15 @@ class EngineHost:
 
     def __init__(self, spec: HostSpec, emit: Emit) -> None:
         self.spec = spec
-        self.config: VoxFusionConfig = config_from_dict(VoxFusionConfig, spec.config)
+        # the session's mode is the engine's (sessions stored before the engine ran offline say "realtime")
+        config = dataclasses.replace(config_from_dict(VoxFusionConfig, spec.config), mode=spec.mode)
+        if spec.shared_process:
+            config = dataclasses.replace(config, realtime_cpu_threads=0,
+                                         tracking=dataclasses.replace(config.tracking, cpu_threads=0))
+        self.config: VoxFusionConfig = config
         self.folder = Path(spec.folder)
         self._emit = emit
-        self._paced_live = spec.mode == "offline"
+        self._offline = spec.mode == "offline"
         self._skip = frozenset(spec.skip)
         self._cond = threading.Condition()
         self._available = 0
@@ -149,6 +161,12 @@ class EngineHost:
             self._emit(("pose", pose))
 
     def _submit(self, frame: RGBDFrame, paced: bool) -> None:
+        """Hand ``frame`` to the engine: offline, track and map it before returning; realtime, queue it for the
+        tracker and, when ``paced``, wait until it is tracked."""
+        if self._offline:
+            self.slam.process(frame)
+            self._submitted += 1
+            return
         self.slam.submit(frame)
         self._submitted += 1
         if not paced:
@@ -182,12 +200,14 @@ class EngineHost:
                 except FrameDecodeError as e:  # recorded before the door refused such frames: skip it
                     log.warning("session %s: skipping recorded frame %d: %s", self.spec.session_id, index, e)
                     continue
-                paced = index < self.spec.replay or self._paced_live
+                paced = self._offline or index < self.spec.replay
                 self._paced_record = index if paced else None
                 try:
                     self._submit(frame, paced=paced)
                     self._paced_record = None
-                except EngineFailedError as e:
+                except Exception as e:  # noqa: BLE001 - fails this session only
+                    if not (self._offline or isinstance(e, EngineFailedError)):
+                        raise
                     # paced, the engine was working on this frame alone: it is the one to leave out on resume;
                     # unpaced (realtime), it may have been an older frame: a resume replays paced and finds it
                     self._fail(e, record=index if paced else None)

@@ -255,7 +255,8 @@ class SessionManager:
                 self._last_frame[session_id] = time.monotonic()
 
     # ------------------------------------------------------------------ identity and access
-    def _build_config(self, preset: str | None, overrides: dict[str, Any] | None) -> tuple[str, VoxFusionConfig]:
+    def _build_config(self, preset: str | None, overrides: dict[str, Any] | None,
+                      mode: SessionMode) -> tuple[str, VoxFusionConfig]:
         preset = preset or self.default_preset
         try:
             check_preset_name(preset)  # names only, never a path from a client
@@ -273,10 +274,12 @@ class SessionManager:
                 cfg = apply_overrides(cfg, overrides)
             except ConfigError as e:
                 raise ConfigError(f"config.{e.field}", e.problem) from e
-        return preset, self._server_config(cfg)
+        return preset, self._server_config(cfg, mode)
 
-    def _server_config(self, cfg: VoxFusionConfig) -> VoxFusionConfig:
-        return apply_overrides(cfg, {"device": self.settings.session_device(), "mode": "realtime"})
+    def _server_config(self, cfg: VoxFusionConfig, mode: SessionMode) -> VoxFusionConfig:
+        """``cfg`` with what the server chooses: its device, and the session's mode as the engine's (an ``offline``
+        session runs the engine's offline mode, :class:`~.engine_host.EngineHost`)."""
+        return apply_overrides(cfg, {"device": self.settings.session_device(), "mode": mode.value})
 
     def _open_count(self) -> int:
         """Open sessions, counting those being resumed (their slot is reserved)."""
@@ -319,7 +322,7 @@ class SessionManager:
             TooManySessionsError: ``max_sessions`` are open (503).
         """
         mode = SessionMode(mode)
-        preset, cfg = self._build_config(preset, overrides)
+        preset, cfg = self._build_config(preset, overrides, mode)
         with self._lock:
             self._check_client_capacity(client)
             self._check_capacity()
@@ -557,7 +560,7 @@ class SessionManager:
         try:
             if s is not None:
                 s.close(checkpoint=False)
-            cfg = self._server_config(config_from_dict(VoxFusionConfig, row.config))
+            cfg = self._server_config(config_from_dict(VoxFusionConfig, row.config), SessionMode(row.mode))
             s = self._new_session(row, cfg, replay=True)
             with self._lock:
                 self._open[session_id] = s

@@ -14,8 +14,10 @@ Backpressure policy:
   and ``Retry-After`` (nothing is recorded for a refused frame);
 * ``realtime`` sessions hand frames to the engine at once; its tracker always takes the newest frame and
   drops older untracked ones (counted in ``frames_dropped``; they stay in the recording);
-* ``offline`` sessions and replays hand the next frame over only once the previous one is tracked, so
-  every frame is tracked, in order.
+* ``offline`` sessions run the engine's offline mode: each frame is tracked and mapped before the next, so
+  every frame is tracked, in order, against the map of all frames before it (the same recording gives the
+  same poses and map every time, as ``voxfusion run`` does); replays hand the next frame over only once
+  the previous one is tracked.
 
 Failures stay inside the session. An engine exception marks it ``failed`` (``last_error`` names the
 frame); ``POST /resume`` replays the recording without that frame. A worker process that dies (killed,
@@ -77,7 +79,7 @@ class Session:
 
     Args:
         session_id, name, mode, created_at: its identity (from the database row).
-        config: engine configuration (``mode="realtime"``, device set by the server).
+        config: engine configuration (``mode``: the session's, device set by the server).
         folder: ``<data_dir>/sessions/<id>``.
         settings: server limits, checkpoint cadence, worker kind.
         store: the metadata database (state changes are written through).

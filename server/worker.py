@@ -22,6 +22,7 @@ Pipe messages (pickled tuples)::
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import multiprocessing
 import multiprocessing.connection
@@ -302,7 +303,7 @@ class ThreadWorker:
     def __init__(self, spec: HostSpec, on_event: OnEvent, on_exit: OnExit) -> None:
         self.spec = spec
         self.node_id = socket.gethostname()
-        self.host = EngineHost(spec, emit=on_event)
+        self.host = EngineHost(dataclasses.replace(spec, shared_process=True), emit=on_event)
 
     def call(self, verb: str, *args: Any, timeout_s: float | None = None) -> Any:
         if verb not in HOST_VERBS:
