@@ -13,11 +13,8 @@ Conventions (see ../shared/GUIDE.md):
 from __future__ import annotations
 
 import numpy as np
-import torch
-from scipy.spatial.transform import Rotation
 
 from .errors import ShapeError, ValidationError
-from .lie import se3_exp, se3_log
 
 __all__ = [
     "scale_motion",
@@ -55,6 +52,8 @@ def pose_from_tum(t_xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
     q_xyzw = np.asarray(q_xyzw, dtype=np.float64)
     batch = t_xyz.shape[:-1]
     T = np.zeros(batch + (4, 4))
+    from scipy.spatial.transform import Rotation  # here: importing scipy.spatial takes ~0.2 s
+
     T[..., :3, :3] = Rotation.from_quat(q_xyzw.reshape(-1, 4)).as_matrix().reshape(batch + (3, 3))
     T[..., :3, 3] = t_xyz
     T[..., 3, 3] = 1.0
@@ -65,6 +64,8 @@ def pose_to_tum(T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Split pose(s) ``[..., 4, 4]`` into translation ``[..., 3]`` and quaternion ``[..., 4]`` (xyzw)."""
     T = np.asarray(T_world_cam, dtype=np.float64)
     batch = T.shape[:-2]
+    from scipy.spatial.transform import Rotation
+
     q = Rotation.from_matrix(T[..., :3, :3].reshape(-1, 3, 3)).as_quat().reshape(batch + (4,))
     return T[..., :3, 3].copy(), q
 
@@ -167,6 +168,10 @@ def scale_motion(T_rel: np.ndarray, ratio: float) -> np.ndarray:
     T_rel = np.asarray(T_rel, dtype=np.float64)
     if ratio == 1.0:
         return T_rel
+    import torch  # here, not at the top: frames, readers and the client SDK load without torch (~1 s)
+
+    from .lie import se3_exp, se3_log
+
     try:
         xi = se3_log(torch.from_numpy(nearest_rigid(T_rel)))  # closed forms (scipy's logm took ~7 ms per call)
     except ValueError:  # a rotation of ~180 degrees (e.g. across lost frames) has no usable log: do not scale

@@ -41,7 +41,6 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..errors import CaptureError, CaptureFormatError, ValidationError
 from ..geometry import make_intrinsics
@@ -162,6 +161,8 @@ def _interpolate_pose(ts: np.ndarray, T: np.ndarray, t: float) -> np.ndarray | N
     if gap > MAX_GT_GAP_S:
         return None
     a = (t - ts[j0]) / gap
+    from scipy.spatial.transform import Rotation  # here: importing scipy.spatial takes ~0.2 s
+
     r0 = Rotation.from_matrix(T[j0, :3, :3])
     r1 = Rotation.from_matrix(T[j1, :3, :3])
     out = np.eye(4)
