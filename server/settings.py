@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from voxfusion.core.cpu import usable_cpu_count
 from voxfusion.core.errors import ConfigError
 
 __all__ = ["ServerSettings", "API_KEY_ENV"]
@@ -86,8 +87,9 @@ class ServerSettings:
     gpus_per_session: float = 0.0
     """GPUs each session's Ray actor asks for (a fraction shares a GPU, e.g. 0.25: four sessions per GPU)."""
     worker_threads: int = 0
-    """Torch intra-op threads of each worker process; ``0``: the cores divided by ``2 * max_sessions`` (each
-    session runs a tracking and a mapping thread), at least 1."""
+    """Torch intra-op threads of each worker process; ``0``: the cores this process may use (its CPU affinity, e.g.
+    a container's cpuset) divided by ``2 * max_sessions`` (each session runs a tracking and a mapping thread), at
+    least 1."""
     worker_restarts: int = 3
     """How often one session's worker process may die (killed, crashed) and be restarted (replaying the
     recording) before the session is marked ``failed``."""
@@ -164,7 +166,7 @@ class ServerSettings:
         """:attr:`worker_threads`, or its automatic value (see there)."""
         if self.worker_threads:
             return self.worker_threads
-        return max(1, (os.cpu_count() or 1) // (2 * self.max_sessions))
+        return max(1, usable_cpu_count() // (2 * self.max_sessions))
 
     @property
     def sessions_dir(self) -> Path:

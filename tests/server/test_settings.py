@@ -38,3 +38,16 @@ def test_a_gpu_less_api_host_picks_gpu_presets_for_ray_sessions_with_a_gpu_share
     # --device cuda names the sessions' device: a GPU-less API host in front of GPU nodes still starts
     explicit = SessionManager(ServerSettings(**common, device="cuda", gpus_per_session=0.25))
     assert explicit.default_preset == "default" and explicit.device.type == "cpu"
+
+
+def test_worker_threads_follow_the_cores_this_process_may_use(tmp_path: Path, monkeypatch):
+    """The automatic torch thread count of a worker divides the cores the API process may run on (its affinity,
+    e.g. a container's cpuset), not every core of the host, among the sessions' tracking and mapping threads."""
+    import os
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(8)), raising=False)
+    common = {"data_dir": tmp_path, "zenoh": False}
+    assert ServerSettings(**common, max_sessions=2).torch_threads_per_worker() == 2
+    assert ServerSettings(**common, max_sessions=8).torch_threads_per_worker() == 1  # at least one
+    assert ServerSettings(**common, max_sessions=8, worker_threads=3).torch_threads_per_worker() == 3

@@ -55,7 +55,8 @@ def serve_command(
         help="Where each session's engine runs: process (a worker process per session: fair sharing of the "
              "cores, a crash stays in its session) or thread (in the server process).")] = "process",
     worker_threads: Annotated[int, typer.Option(
-        help="Torch threads per session worker (0: cores / (2 x max-sessions), at least 1).")] = 0,
+        help="Torch threads per session worker (0: the cores this process may use / (2 x max-sessions), "
+             "at least 1).")] = 0,
     ray_address: Annotated[str | None, typer.Option(
         "--ray-address", help="Run session workers as actors on this Ray cluster (host:6379, ray://host:10001, "
                               "auto); the data folder must be a path every node shares.")] = None,
