@@ -3,6 +3,8 @@
 Usage (from the repository root)::
 
     make bench-gpu                          # = python bench/gpu_suite.py: needs CUDA, ~10-15 min
+    python bench/gpu_suite.py --lease       # CUDA, every section at sizes that fit ~7 min (a lent GPU's short
+                                            # slot: bench/gpu_lease.sh sets it up on a machine without internet)
     python bench/gpu_suite.py --smoke       # any machine (CPU): the same code paths at tiny sizes, seconds
     python bench/gpu_suite.py --capacity-max 8 --skip sevenscenes
 
@@ -31,7 +33,10 @@ Sections (every timed region sits between ``torch.cuda.synchronize()`` calls, af
   ``--capacity-max`` / ``--capacity-budget-s``.
 
 Writes ``bench/results/gpu-<gpu name slug>.json`` (``--smoke``: a temporary folder) through
-:func:`voxfusion.core.eval.report.write_json`, with :func:`bench.machine.machine_info`, and prints a table.
+:func:`voxfusion.core.eval.report.write_json`, with :func:`bench.machine.machine_info`, and prints a table. The
+file is rewritten after every section (``"complete": false`` until the last), so a run stopped by a time limit
+still leaves what it measured. ``--budget-s`` starts no section after that many seconds (the ones left out are
+listed under ``"not_run"``); ``--lease`` sets it to 420 s.
 """
 
 from __future__ import annotations
@@ -56,8 +61,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-if str(REPO_ROOT) not in sys.path:
-    sys.path.insert(0, str(REPO_ROOT))
+if str(REPO_ROOT) not in sys.path:  # for `bench`; appended, so an installed `voxfusion` (bench/gpu_lease.sh lays one
+    sys.path.append(str(REPO_ROOT))  # out from this checkout without pip) wins over the checkout's bare voxfusion/
 
 import torch  # noqa: E402
 
@@ -74,6 +79,8 @@ from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for 
 from voxfusion.core.tracking import Tracker, TrackingConfig  # noqa: E402
 
 SEVENSCENES = REPO_ROOT.parent / "shared" / "data" / "sevenscenes_redkitchen"
+"""The 7-Scenes capture of the ``realtime`` section (``--sevenscenes`` names another copy, e.g. the frames
+``scripts/gpu_kit.sh`` packs for a machine that has no ``../shared``)."""
 HOLD_FRACTION = 0.97
 """A session holds the feed rate when it tracks at least this fraction of it (30 Hz -> 29.1 Hz)."""
 PAPER_RTX3090_MS = {"tracking_ms_per_iter": 12.0, "mapping_ms_per_iter": 55.0}
@@ -110,10 +117,32 @@ class SuiteSizes:
     """Added to every preset."""
     capacity_max: int = 64
     """``capacity``: most concurrent sessions tried (``--capacity-max`` lowers it)."""
+    capacity_budget_s: float = 900.0
+    """``capacity``: no new round after this many seconds of the section (``--capacity-budget-s``)."""
+    sevenscenes_frames: int = 300
+    """``realtime``: 7-Scenes frames decoded (fed back and forth)."""
+    accel_map_frames: int = 31
+    """``accel``: frames of the map each variant builds (:func:`bench.bench_accel.run`)."""
+    accel_iters: int = 5
+    """``accel``: mapping iterations per timed round."""
+    accel_rounds: int = 7
+    """``accel``: timed rounds (medians are reported)."""
+    accel_variants: tuple[str, ...] | None = None
+    """``accel``: the :data:`bench.bench_accel.VARIANTS` measured (None: all)."""
+    budget_s: float | None = None
+    """No section starts after this many seconds of the suite (None: no limit; ``--budget-s``)."""
 
 
 FULL = SuiteSizes(640, 480, 120, 5, 10, 30, 5, 10.0, 30.0, (256, 192), 30, 10.0)
-SMOKE = SuiteSizes(32, 24, 6, 2, 2, 2, 1, 0.3, 30.0, (32, 24), 2, 0.3, tuple(TINY), capacity_max=2)
+LEASE = SuiteSizes(640, 480, 60, 5, 10, 20, 3, 8.0, 30.0, (256, 192), 20, 6.0, capacity_max=16,
+                   capacity_budget_s=150.0, sevenscenes_frames=100, accel_map_frames=11, accel_iters=5,
+                   accel_rounds=3, accel_variants=("float32 eager (reference)", "bfloat16", "tracking compile"),
+                   budget_s=420.0)
+"""``--lease``: every section of ``FULL`` at sizes that end in about 7 minutes on one GPU (the realtime feeds 8 s,
+capacity rounds of 6 s for at most 150 s, three execution options on an 11-frame map), for a lent GPU whose
+whole slot is ~15 minutes, the machine's start included."""
+SMOKE = SuiteSizes(32, 24, 6, 2, 2, 2, 1, 0.3, 30.0, (32, 24), 2, 0.3, tuple(TINY), capacity_max=2,
+                   accel_map_frames=3, accel_iters=1, accel_rounds=2)
 
 
 @dataclass(frozen=True)
@@ -466,26 +495,62 @@ def _section(name: str, memory: dict, fn: Callable[[], object]) -> object:
     return out
 
 
-def run_suite(args: argparse.Namespace) -> dict:
-    """Every section that ``args`` does not skip; returns the JSON-ready result."""
-    sizes = SMOKE if args.smoke else FULL
+def suite_sizes(args: argparse.Namespace) -> SuiteSizes:
+    """The sizes ``args`` ask for (``--smoke``, ``--lease`` or the full suite), with ``--budget-s`` and the
+    capacity options applied."""
+    sizes = SMOKE if args.smoke else LEASE if args.lease else FULL
+    changes: dict[str, object] = {}
+    if args.budget_s is not None:
+        changes["budget_s"] = args.budget_s
+    if args.capacity_budget_s is not None:
+        changes["capacity_budget_s"] = args.capacity_budget_s
+    if args.capacity_seconds is not None:
+        changes["capacity_s"] = args.capacity_seconds
+    if args.capacity_max is not None:
+        changes["capacity_max"] = min(args.capacity_max, sizes.capacity_max)
+    return dataclasses.replace(sizes, **changes)
+
+
+def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lambda results: None) -> dict:
+    """Every section that ``args`` does not skip; returns the JSON-ready result. ``on_section(results)`` is called
+    after each section with what has been measured so far (the caller writes it out)."""
+    sizes = suite_sizes(args)
     device = "cpu" if args.smoke else "cuda"
     overrides = [*sizes.overrides, *args.set]
-    results: dict = {}
+    t_start = time.perf_counter()
+    results: dict = {"not_run": []}
     memory: dict = {}
+    results["memory"] = memory
+
+    def may_start(section: str) -> bool:
+        """Whether ``section`` starts: not past the budget (else it is recorded as not run)."""
+        if sizes.budget_s is None or time.perf_counter() - t_start < sizes.budget_s:
+            return True
+        results["not_run"].append(section)
+        print(f"[{section}] not run: the {sizes.budget_s:g} s budget is spent", flush=True)
+        return False
+
+    def done() -> None:
+        results["elapsed_s"] = time.perf_counter() - t_start
+        on_section(results)
+
     synth = SessionSpec("synthetic", sizes.width, sizes.height, sizes.unique_frames, sizes.realtime_s, sizes.feed_hz,
                         device, tuple(overrides))
     frames, name, cap = load_frames(synth)
-    if "iterations" not in args.skip:
+    if "iterations" not in args.skip and may_start("iterations"):
         iter_cfg = load_preset(args.iter_preset, [*overrides, f"device={device}"], profile=cap.profile)
         results["iterations"] = _section("iterations", memory, lambda: measure_iterations(frames, iter_cfg, sizes))
+        done()
     if "realtime" not in args.skip:
         specs = [("synthetic", synth)]
-        if "sevenscenes" not in args.skip and not args.smoke and SEVENSCENES.is_dir():
-            specs.append(("sevenscenes", dataclasses.replace(synth, capture=str(SEVENSCENES),
-                                                             unique_frames=max(sizes.unique_frames, 300))))
+        sevenscenes = args.sevenscenes or SEVENSCENES
+        if "sevenscenes" not in args.skip and not args.smoke and sevenscenes.is_dir():
+            specs.append(("sevenscenes", dataclasses.replace(synth, capture=str(sevenscenes),
+                                                             unique_frames=sizes.sevenscenes_frames)))
         results["realtime"] = {}
         for key, spec in specs:
+            if not may_start(f"realtime/{key}"):
+                continue
             fr, nm, cp = (frames, name, cap) if key == "synthetic" else load_frames(spec)
             config, preset = session_config(spec, cp)
             res, slam = _section(f"realtime/{key}", memory, lambda fr=fr, c=config, p=preset, nm=nm, s=spec:
@@ -496,21 +561,26 @@ def run_suite(args: argparse.Namespace) -> dict:
                 results["render_mesh"] = _section("render_mesh", memory,
                                                   lambda s=slam, fr=fr: measure_render_and_mesh(s, fr, sizes))
             slam.close()
-    if "accel" not in args.skip:
+            done()
+    if "accel" not in args.skip and may_start("accel"):
         results["accel"] = _section("accel", memory, lambda: bench_accel.run(
-            device, args.smoke, 3 if args.smoke else 31, 1 if args.smoke else 5, 2 if args.smoke else 7,
-            overrides=args.set))
-    if "capacity" not in args.skip:
+            device, args.smoke, sizes.accel_map_frames, sizes.accel_iters, sizes.accel_rounds,
+            variants=list(sizes.accel_variants) if sizes.accel_variants else None, overrides=args.set))
+        done()
+    if "capacity" not in args.skip and may_start("capacity"):
         # 30 distinct frames per session (played back and forth): every worker renders its own before it starts
-        spec = dataclasses.replace(synth, seconds=args.capacity_seconds or sizes.capacity_s,
-                                   unique_frames=min(sizes.unique_frames, 30))
+        spec = dataclasses.replace(synth, seconds=sizes.capacity_s, unique_frames=min(sizes.unique_frames, 30))
         isolation = args.capacity_isolation or ("thread" if args.smoke else "process")
         if torch.cuda.is_available():  # hand the earlier sections' cached blocks back to the sessions' processes
             gc.collect()
             torch.cuda.empty_cache()
+        budget = sizes.capacity_budget_s
+        if sizes.budget_s is not None:  # the suite's own budget bounds the section's rounds too
+            budget = min(budget, max(0.0, sizes.budget_s - (time.perf_counter() - t_start)))
         results["capacity"] = _section("capacity", memory, lambda: measure_capacity(
-            spec, min(args.capacity_max, sizes.capacity_max), args.capacity_budget_s, isolation))
-    results["memory"] = memory
+            spec, sizes.capacity_max, budget, isolation))
+        done()
+    results["elapsed_s"] = time.perf_counter() - t_start
     return results
 
 
@@ -551,14 +621,24 @@ def _print_tables(results: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--smoke", action="store_true", help="CPU, tiny config and sizes, output to a temp folder")
-    ap.add_argument("--out", type=Path, default=None, help="JSON path (default bench/results/gpu-<gpu>.json)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="JSON path (default OUT_DIR/gpu-<gpu>.json, --lease: gpu-<gpu>-lease.json)")
+    ap.add_argument("--out-dir", type=Path, default=REPO_ROOT / "bench" / "results",
+                    help="folder of the default JSON path (default bench/results)")
     ap.add_argument("--iter-preset", default="paper", help="preset of the iterations section (default paper)")
     ap.add_argument("--set", action="append", default=[], help="override for every config, e.g. tracking.rays=512")
     ap.add_argument("--skip", nargs="*", default=[], choices=["iterations", "realtime", "sevenscenes", "render",
                                                               "accel", "capacity"])
-    ap.add_argument("--capacity-max", type=int, default=64, help="most concurrent sessions tried")
+    ap.add_argument("--lease", action="store_true",
+                    help="CUDA, every section at sizes that end in ~7 minutes (a lent GPU's short slot)")
+    ap.add_argument("--budget-s", type=float, default=None,
+                    help="start no section after this many seconds (default: none; --lease: 420)")
+    ap.add_argument("--sevenscenes", type=Path, default=None,
+                    help=f"the 7-Scenes capture of the realtime section (default {SEVENSCENES})")
+    ap.add_argument("--capacity-max", type=int, default=None, help="most concurrent sessions tried (default 64)")
     ap.add_argument("--capacity-seconds", type=float, default=None, help="feeding per round (default 10 s)")
-    ap.add_argument("--capacity-budget-s", type=float, default=900.0, help="no new round after this many seconds")
+    ap.add_argument("--capacity-budget-s", type=float, default=None,
+                    help="no new round after this many seconds (default 900; --lease: 150)")
     ap.add_argument("--capacity-isolation", choices=["process", "thread"], default=None,
                     help="one process per session (default; as the server) or threads in this process (--smoke)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
@@ -570,22 +650,30 @@ def main(argv: list[str] | None = None) -> int:
               f"(torch {torch.__version__}, CUDA build: {torch.version.cuda}). On a CPU, "
               "`python bench/gpu_suite.py --smoke` runs the same code at tiny sizes.", file=sys.stderr)
         return 2
+    if args.smoke and args.lease:
+        ap.error("--smoke and --lease are two sizes: give one")
     torch.manual_seed(0)
     machine = machine_info()
     gpu = machine["cuda_device"]["name"] if machine.get("cuda_device") else "cpu-smoke"
     out = args.out or (Path(tempfile.mkdtemp(prefix="gpu-suite-")) / "gpu-cpu-smoke.json" if args.smoke
-                       else REPO_ROOT / "bench" / "results" / f"gpu-{_slug(gpu)}.json")
-    print(f"gpu suite on {gpu} ({'smoke: tiny sizes' if args.smoke else 'full sizes'})", flush=True)
+                       else args.out_dir / f"gpu-{_slug(gpu)}{'-lease' if args.lease else ''}.json")
+    kind = "smoke: tiny sizes" if args.smoke else "lease sizes" if args.lease else "full sizes"
+    print(f"gpu suite on {gpu} ({kind})", flush=True)
     t0 = time.perf_counter()
-    results = run_suite(args)
-    _print_tables(results)
-    write_json(out, {
+    header = {
         "benchmark": "gpu_suite", "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "command": "python bench/gpu_suite.py " + " ".join(argv if argv is not None else sys.argv[1:]),
-        "smoke": args.smoke, "wall_s": time.perf_counter() - t0, "machine": machine,
-        "sizes": dataclasses.asdict(SMOKE if args.smoke else FULL), "iter_preset": args.iter_preset,
-        "tracker_methods": tracker_methods(), "paper_rtx3090_ms": PAPER_RTX3090_MS, **results,
-    })
+        "smoke": args.smoke, "lease": args.lease, "machine": machine,
+        "sizes": dataclasses.asdict(suite_sizes(args)), "iter_preset": args.iter_preset,
+        "tracker_methods": tracker_methods(), "paper_rtx3090_ms": PAPER_RTX3090_MS,
+    }
+
+    def write(results: dict, complete: bool) -> None:
+        write_json(out, {**header, "complete": complete, "wall_s": time.perf_counter() - t0, **results})
+
+    results = run_suite(args, on_section=lambda r: write(r, complete=False))
+    _print_tables(results)
+    write(results, complete=True)
     print(f"\nwrote {out}")
     return 0
 

@@ -16,11 +16,18 @@ from bench import bench_accel, gpu_suite
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 
 
-def test_smoke_runs_every_section_and_writes_json(tmp_path: Path):
+def test_smoke_runs_every_section_and_writes_json(tmp_path: Path, monkeypatch):
     out = tmp_path / "gpu-smoke.json"
+    written = []  # what each write left in the file: rewritten after every section, complete only at the end
+    real_write = gpu_suite.write_json
+    monkeypatch.setattr(gpu_suite, "write_json", lambda path, obj: written.append(
+        json.loads(real_write(path, obj).read_text())) or Path(path))
     assert gpu_suite.main(["--smoke", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
-    assert result["smoke"] is True and result["machine"]["cpu_model"]
+    assert [w["complete"] for w in written] == [False] * (len(written) - 1) + [True]
+    assert [("iterations" in w, "accel" in w, "capacity" in w) for w in written[:4]] == [
+        (True, False, False), (True, False, False), (True, True, False), (True, True, True)]
+    assert result["smoke"] is True and result["machine"]["cpu_model"] and result["not_run"] == []
     stages = [r["stage"] for r in result["iterations"]]
     # on the CPU the default mapping path compacts its samples; the suite also times the fixed-shape one
     assert stages == [f"tracking ({m})" for m in gpu_suite.tracker_methods()] + ["mapping",
@@ -50,6 +57,27 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path):
     tracked = accel["tracking compile"]
     assert isinstance(tracked["compile_fell_back"], bool) and tracked["tracking_build_s"] > 0
     assert abs(tracked["tracking_error_mm"] - accel["float32 eager (reference)"]["tracking_error_mm"]) < 0.05
+
+
+def test_budget_starts_no_section_once_spent_and_says_which(tmp_path: Path):
+    out = tmp_path / "gpu-smoke.json"
+    assert gpu_suite.main(["--smoke", "--budget-s", "0", "--skip", "sevenscenes", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["complete"] is True and result["sizes"]["budget_s"] == 0
+    assert result["not_run"] == ["iterations", "realtime/synthetic", "accel", "capacity"]
+    assert not {"iterations", "render_mesh", "accel", "capacity"} & set(result) and result["realtime"] == {}
+
+
+def test_lease_sizes_fit_a_short_slot():
+    """--lease: the full suite's resolution and preset, bounded in time: a budget well inside a lent GPU's ~15
+    minutes, shorter feeds, a capacity round budget, and the execution options that decide the CUDA defaults."""
+    lease = gpu_suite.LEASE
+    assert (lease.width, lease.height, lease.render_wh) == (gpu_suite.FULL.width, gpu_suite.FULL.height,
+                                                            gpu_suite.FULL.render_wh)
+    assert lease.budget_s <= 480 and lease.capacity_budget_s < lease.budget_s
+    assert lease.realtime_s <= gpu_suite.FULL.realtime_s and lease.capacity_s <= gpu_suite.FULL.capacity_s
+    assert set(lease.accel_variants) <= set(bench_accel.VARIANTS)
+    assert "float32 eager (reference)" in lease.accel_variants
 
 
 def test_capacity_worker_waits_for_go_and_reports_one_session():
