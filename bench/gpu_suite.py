@@ -131,13 +131,16 @@ class SuiteSizes:
     """``accel``: the :data:`bench.bench_accel.VARIANTS` measured (None: all)."""
     budget_s: float | None = None
     """No section starts after this many seconds of the suite (None: no limit; ``--budget-s``)."""
+    realtime_options: tuple[tuple[str, ...], ...] = ()
+    """``realtime``: the synthetic session again with each of these option sets (e.g. the compiled tracker), so
+    a default can be chosen from the rates it gives, not from iteration times alone."""
 
 
 FULL = SuiteSizes(640, 480, 120, 5, 10, 30, 5, 10.0, 30.0, (256, 192), 30, 10.0)
 LEASE = SuiteSizes(640, 480, 60, 5, 10, 20, 3, 8.0, 30.0, (256, 192), 20, 6.0, capacity_max=16,
                    capacity_budget_s=150.0, sevenscenes_frames=100, accel_map_frames=11, accel_iters=5,
                    accel_rounds=3, accel_variants=("float32 eager (reference)", "bfloat16", "tracking compile"),
-                   budget_s=420.0)
+                   budget_s=420.0, realtime_options=(("tracking.compile=true",),))
 """``--lease``: every section of ``FULL`` at sizes that end in about 7 minutes on one GPU (the realtime feeds 8 s,
 capacity rounds of 6 s for at most 150 s, three execution options on an 11-frame map), for a lent GPU whose
 whole slot is ~15 minutes, the machine's start included."""
@@ -543,6 +546,8 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
         done()
     if "realtime" not in args.skip:
         specs = [("synthetic", synth)]
+        specs += [(f"synthetic, {' '.join(opts)}", dataclasses.replace(synth, overrides=(*synth.overrides, *opts)))
+                  for opts in sizes.realtime_options]
         sevenscenes = args.sevenscenes or SEVENSCENES
         if "sevenscenes" not in args.skip and not args.smoke and sevenscenes.is_dir():
             specs.append(("sevenscenes", dataclasses.replace(synth, capture=str(sevenscenes),
@@ -551,7 +556,7 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
         for key, spec in specs:
             if not may_start(f"realtime/{key}"):
                 continue
-            fr, nm, cp = (frames, name, cap) if key == "synthetic" else load_frames(spec)
+            fr, nm, cp = (frames, name, cap) if spec.capture == "synthetic" else load_frames(spec)
             config, preset = session_config(spec, cp)
             res, slam = _section(f"realtime/{key}", memory, lambda fr=fr, c=config, p=preset, nm=nm, s=spec:
                                  run_realtime(fr, c, p, nm, s.seconds, s.feed_hz))

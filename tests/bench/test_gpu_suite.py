@@ -68,6 +68,16 @@ def test_budget_starts_no_section_once_spent_and_says_which(tmp_path: Path):
     assert not {"iterations", "render_mesh", "accel", "capacity"} & set(result) and result["realtime"] == {}
 
 
+def test_realtime_options_run_the_synthetic_session_again_with_them(tmp_path: Path, monkeypatch):
+    out = tmp_path / "gpu-smoke.json"
+    monkeypatch.setattr(gpu_suite, "SMOKE", dataclasses.replace(gpu_suite.SMOKE,
+                                                                realtime_options=(("tracking.sdf_points=128",),)))
+    assert gpu_suite.main(["--smoke", "--skip", "iterations", "accel", "capacity", "render", "--out", str(out)]) == 0
+    realtime = json.loads(out.read_text())["realtime"]
+    assert list(realtime) == ["synthetic", "synthetic, tracking.sdf_points=128"]
+    assert all(r["frames_fed"] == round(gpu_suite.SMOKE.realtime_s * 30) for r in realtime.values())
+
+
 def test_lease_sizes_fit_a_short_slot():
     """--lease: the full suite's resolution and preset, bounded in time: a budget well inside a lent GPU's ~15
     minutes, shorter feeds, a capacity round budget, and the execution options that decide the CUDA defaults."""
@@ -78,6 +88,7 @@ def test_lease_sizes_fit_a_short_slot():
     assert lease.realtime_s <= gpu_suite.FULL.realtime_s and lease.capacity_s <= gpu_suite.FULL.capacity_s
     assert set(lease.accel_variants) <= set(bench_accel.VARIANTS)
     assert "float32 eager (reference)" in lease.accel_variants
+    assert ("tracking.compile=true",) in lease.realtime_options  # the realtime rates with the compiled tracker too
 
 
 def test_capacity_worker_waits_for_go_and_reports_one_session():
