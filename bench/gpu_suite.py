@@ -19,7 +19,9 @@ Sections (every timed region sits between ``torch.cuda.synchronize()`` calls, af
   picks) fed at 30 Hz, on the 640x480 synthetic room and on 7-Scenes redkitchen (skipped when
   ``../shared/data`` is absent): tracking rate (frames tracked / s of feeding), mapping rounds / s, dropped
   frames, pose latency. Frames are decoded before feeding; a capture shorter than the feed is played back
-  and forth (re-stamped, so motion stays continuous).
+  and forth (re-stamped, so motion stays continuous). ``SuiteSizes.realtime_options`` runs the synthetic
+  session again with other options (``--lease``: the compiled tracker, compiled beforehand by
+  :func:`warm_compiled`, so the rates are the compiled code's, not the compiler's).
 * ``render``: latency of a 256x192 depth image (:meth:`SlamSystem.render_depth`, AR occlusion) of the
   synthetic session's final map; ``mesh``: :meth:`SlamSystem.mesh` time and size.
 * ``memory``: peak ``torch.cuda.max_memory_allocated`` (and RSS) of each section.
@@ -274,6 +276,21 @@ def run_realtime(frames: list[RGBDFrame], config: VoxFusionConfig, preset: str, 
         lost=s1.frames_lost - s0.frames_lost, latency_ms=s1.latency_ms, first_map_s=first_map_s,
         keyframes=s1.keyframes, voxels=s1.voxels)
     return result, slam
+
+
+def warm_compiled(frames: list[RGBDFrame], config: VoxFusionConfig, n_frames: int = 3) -> float:
+    """Compile what ``config`` compiles (``tracking.compile``, ``field.compile``) before a realtime feed: an offline
+    session over the first ``n_frames`` frames in this process, whose compiled functions the realtime session then
+    reuses (they are per process). Without it a realtime feed of a few seconds would time the compilation (~7-30 s
+    per process) and drop the frames that arrive meanwhile. Returns the seconds it took (0 when nothing compiles)."""
+    if not (config.tracking.compile or config.field.compile):
+        return 0.0
+    t0 = time.perf_counter()
+    slam = SlamSystem(apply_overrides(config, ["mode=offline"]))
+    for f in frames[:n_frames]:
+        slam.process(f)
+    slam.close()
+    return time.perf_counter() - t0
 
 
 def tracker_methods() -> list[str]:
@@ -558,9 +575,10 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
                 continue
             fr, nm, cp = (frames, name, cap) if spec.capture == "synthetic" else load_frames(spec)
             config, preset = session_config(spec, cp)
+            warm_s = warm_compiled(fr, config)
             res, slam = _section(f"realtime/{key}", memory, lambda fr=fr, c=config, p=preset, nm=nm, s=spec:
                                  run_realtime(fr, c, p, nm, s.seconds, s.feed_hz))
-            results["realtime"][key] = dataclasses.asdict(res)
+            results["realtime"][key] = {**dataclasses.asdict(res), "compile_warmup_s": warm_s}
             slam.finish(timeout_s=600)
             if key == "synthetic" and "render" not in args.skip:
                 results["render_mesh"] = _section("render_mesh", memory,

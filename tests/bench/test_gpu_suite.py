@@ -76,6 +76,19 @@ def test_realtime_options_run_the_synthetic_session_again_with_them(tmp_path: Pa
     realtime = json.loads(out.read_text())["realtime"]
     assert list(realtime) == ["synthetic", "synthetic, tracking.sdf_points=128"]
     assert all(r["frames_fed"] == round(gpu_suite.SMOKE.realtime_s * 30) for r in realtime.values())
+    assert [r["compile_warmup_s"] for r in realtime.values()] == [0.0, 0.0]  # nothing compiles: no warm-up
+
+
+def test_compiled_options_are_compiled_before_a_realtime_feed():
+    """A realtime session with the compiled tracker reuses what an offline warm-up compiled in this process."""
+    from voxfusion.core import tracking_sdf
+
+    frames = list(SyntheticCapture(SyntheticConfig(n_frames=3, width=32, height=24)).frames())
+    config = gpu_suite.load_preset("cpu", [*gpu_suite.TINY, "tracking.compile=true"], profile=None)
+    assert gpu_suite.warm_compiled(frames, config) > 0
+    assert tracking_sdf.COMPILED_LINEARIZE._compiled is not None
+    plain = gpu_suite.load_preset("cpu", list(gpu_suite.TINY), profile=None)
+    assert gpu_suite.warm_compiled(frames, plain) == 0.0
 
 
 def test_lease_sizes_fit_a_short_slot():
