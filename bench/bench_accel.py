@@ -1,6 +1,7 @@
 """The engine's execution options, measured: eager float32 (the reference) against ``torch.compile`` and
-mixed precision of the decoder (``field.compile``, ``field.precision``) and the compiled geometric tracker
-(``tracking.compile``), per tracking and per mapping iteration.
+mixed precision of the decoder (``field.compile``, ``field.precision``), the compiled geometric tracker
+(``tracking.compile``) and the compiled mapping iteration (``mapping.compile``), per tracking and per mapping
+iteration.
 
 Usage (from the repository root)::
 
@@ -44,6 +45,7 @@ import torch  # noqa: E402
 
 from bench.machine import machine_info  # noqa: E402
 from voxfusion.core import field as field_module  # noqa: E402
+from voxfusion.core import mapping as mapping_module  # noqa: E402
 from voxfusion.core import tracking_sdf  # noqa: E402
 from voxfusion.core.config import apply_overrides  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
@@ -61,9 +63,10 @@ VARIANTS: dict[str, dict[str, object]] = {
     "compile": {"field.compile": True},
     "compile + bfloat16": {"field.compile": True, "field.precision": "bfloat16"},
     "tracking compile": {"tracking.compile": True},
+    "mapping compile": {"mapping.compile": True},
 }
 """Variant name -> configuration options (``section.key``: the decoder's ``field.*``, the geometric tracker's
-``tracking.compile``)."""
+``tracking.compile``, a mapping iteration's renderer and losses ``mapping.compile``)."""
 SMOKE = ["mapping.first_frame_iters=5", "mapping.iters=1", "mapping.rays_per_frame=64", "tracking.sdf_points=256",
          "tracking.sdf_iters=2", "field.sdf_hidden=16", "field.color_hidden=16", "field.geo_feature_dim=8"]
 """``--smoke`` overrides: the same code at tiny sizes."""
@@ -98,7 +101,8 @@ def measure_variant(base: VoxFusionConfig, options: dict[str, object], frames: l
     config = apply_overrides(base, [f"{key}={value}" for key, value in options.items()])
     device = torch.device(config.device)
     compiled = [fn for on, fn in ((config.field.compile, field_module.COMPILED_MLP),
-                                  (config.tracking.compile, tracking_sdf.COMPILED_LINEARIZE)) if on]
+                                  (config.tracking.compile, tracking_sdf.COMPILED_LINEARIZE),
+                                  (config.mapping.compile, mapping_module.COMPILED_BAND_LOSS)) if on]
     if compiled:  # a fresh compilation per variant: earlier variants' graphs and failures do not count
         torch._dynamo.reset()
         for fn in compiled:

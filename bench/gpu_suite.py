@@ -20,8 +20,8 @@ Sections (every timed region sits between ``torch.cuda.synchronize()`` calls, af
   ``../shared/data`` is absent): tracking rate (frames tracked / s of feeding), mapping rounds / s, dropped
   frames, pose latency. Frames are decoded before feeding; a capture shorter than the feed is played back
   and forth (re-stamped, so motion stays continuous). ``SuiteSizes.realtime_options`` runs the synthetic
-  session again with other options (``--lease``: the compiled tracker, compiled beforehand by
-  :func:`warm_compiled`, so the rates are the compiled code's, not the compiler's).
+  session again with other options (``--lease``: the compiled tracker and mapping iteration, compiled beforehand
+  by :func:`warm_compiled`, so the rates are the compiled code's, not the compiler's).
 * ``render``: latency of a 256x192 depth image (:meth:`SlamSystem.render_depth`, AR occlusion) of the
   synthetic session's final map; ``mesh``: :meth:`SlamSystem.mesh` time and size.
 * ``memory``: peak ``torch.cuda.max_memory_allocated`` (and RSS) of each section.
@@ -141,8 +141,9 @@ class SuiteSizes:
 FULL = SuiteSizes(640, 480, 120, 5, 10, 30, 5, 10.0, 30.0, (256, 192), 30, 10.0)
 LEASE = SuiteSizes(640, 480, 60, 5, 10, 20, 3, 8.0, 30.0, (256, 192), 20, 6.0, capacity_max=16,
                    capacity_budget_s=150.0, sevenscenes_frames=100, accel_map_frames=11, accel_iters=5,
-                   accel_rounds=3, accel_variants=("float32 eager (reference)", "bfloat16", "tracking compile"),
-                   budget_s=420.0, realtime_options=(("tracking.compile=true",),))
+                   accel_rounds=3, accel_variants=("float32 eager (reference)", "bfloat16", "tracking compile",
+                                                   "mapping compile"),
+                   budget_s=420.0, realtime_options=(("tracking.compile=true", "mapping.compile=true"),))
 """``--lease``: every section of ``FULL`` at sizes that end in about 7 minutes on one GPU (the realtime feeds 8 s,
 capacity rounds of 6 s for at most 150 s, three execution options on an 11-frame map), for a lent GPU whose
 whole slot is ~15 minutes, the machine's start included."""
@@ -278,12 +279,13 @@ def run_realtime(frames: list[RGBDFrame], config: VoxFusionConfig, preset: str, 
     return result, slam
 
 
-def warm_compiled(frames: list[RGBDFrame], config: VoxFusionConfig, n_frames: int = 3) -> float:
-    """Compile what ``config`` compiles (``tracking.compile``, ``field.compile``) before a realtime feed: an offline
+def warm_compiled(frames: list[RGBDFrame], config: VoxFusionConfig, n_frames: int = 5) -> float:
+    """Compile what ``config`` compiles (``tracking.compile``, ``mapping.compile``, ``field.compile``) before a
+    realtime feed: an offline
     session over the first ``n_frames`` frames in this process, whose compiled functions the realtime session then
     reuses (they are per process). Without it a realtime feed of a few seconds would time the compilation (~7-30 s
     per process) and drop the frames that arrive meanwhile. Returns the seconds it took (0 when nothing compiles)."""
-    if not (config.tracking.compile or config.field.compile):
+    if not (config.tracking.compile or config.mapping.compile or config.field.compile):
         return 0.0
     t0 = time.perf_counter()
     slam = SlamSystem(apply_overrides(config, ["mode=offline"]))

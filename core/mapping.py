@@ -20,6 +20,7 @@ and hands refined poses in the same way.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import random
 import time
 from dataclasses import dataclass
@@ -28,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from .compiled import CompiledFunction
 from .depth_filter import DepthFilterConfig
 from .errors import ConfigError, ValidationError
 from .evidence import EvidenceConfig, observe_frame
@@ -37,13 +39,15 @@ from .lie import perturb_right
 from .losses import LossConfig, LossTerms, compute_losses
 from .mesh.colors import ColorView
 from .optim import adam
-from .render import RenderConfig, camera_directions, render_band, render_rays
+from .render import RenderConfig, band_jitter, band_sample_count, camera_directions, render_band, render_rays
 from .voxels import VoxelMap
 
 if TYPE_CHECKING:
     from .slam_config import VoxFusionConfig
 
-__all__ = ["MappingConfig", "Keyframe", "MappingStep", "Mapper", "make_mapper", "publish_keyframe_poses"]
+__all__ = ["MappingConfig", "Keyframe", "MappingStep", "Mapper", "make_mapper", "publish_keyframe_poses", "band_loss"]
+
+log = logging.getLogger("voxfusion.mapping")
 
 
 @dataclass(frozen=True)
@@ -119,6 +123,14 @@ class MappingConfig:
     paper's 0.1 m band and 2 cm step). A mapping iteration costs about what its samples cost, and jittered
     strata cover the band over the iterations, so the CPU preset uses fewer (``configs/cpu.yaml``); depth
     rendering for tracking, occlusion and evaluation keeps the renderer's step."""
+
+    compile: bool = False
+    """Run a mapping iteration's renderer and losses (:func:`band_loss`: sampling, field, compositing, the four
+    terms, and through autograd their backward pass) through :func:`torch.compile` (dynamic shapes: the map
+    grows), with the fixed-shape samples (``compact_samples`` is then ignored: compacting reads a count back, which
+    a graph cannot hold) and the jitter drawn outside the graph from the same generator. ``band`` sampler only
+    (``voxels`` stays eager). Where compilation fails the step logs one warning and runs eager. Aimed at GPUs,
+    where an eager iteration is ~2000 operators, each a kernel launch; ``make bench-gpu`` (accel) measures it."""
 
     def stride_for(self, width: int) -> int:
         """The pixel stride of allocation for a ``width``-pixel image (``alloc_stride``, or 0's rule)."""
@@ -288,6 +300,26 @@ def window_rays(window: list[Keyframe], rays_per_frame: int, generator: torch.Ge
     return origins, dirs, torch.cat([px.depth_m for px in pixels]), [px.color for px in pixels]
 
 
+def band_loss(voxels: VoxelMap, decoder: SDFDecoder, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
+              color_gt: torch.Tensor | None, color_valid: torch.Tensor | None, jitter: torch.Tensor,
+              render: RenderConfig, loss: LossConfig, n_free: int, free_range_m: float, n_band: int | None
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One mapping iteration's forward pass on the fixed-shape path: :func:`~.render.render_band` (``compact``
+    False, stratum positions ``jitter [N, S]``) and :func:`~.losses.compute_losses`, as the tuple ``(total, color,
+    depth, free_space, sdf)`` (:class:`~.losses.LossTerms`' fields). Rays ``origins`` / ``dirs [N, 3]``, observed
+    depth ``[N]``, colours ``[N, 3]`` or None. A free function of tensors and configuration, with no random draw and
+    no read-back, so that ``mapping.compile`` can compile it (:data:`COMPILED_BAND_LOSS`); :meth:`Mapper.step` runs
+    the same computation eagerly otherwise (the reference the tests hold it to)."""
+    out = render_band(voxels, decoder, origins, dirs, depth_gt, render, n_free, free_range_m, training=True,
+                      n_band=n_band, compact=False, jitter=jitter)
+    t = compute_losses(out, depth_gt, color_gt, loss, color_valid)
+    return t.total, t.color, t.depth, t.free_space, t.sdf
+
+
+COMPILED_BAND_LOSS = CompiledFunction(band_loss, "mapping.compile", log)
+""":func:`band_loss` compiled (``mapping.compile``), forward and backward; one for every mapper (shapes dynamic)."""
+
+
 def _window_colors(colors: list[torch.Tensor | None], depths: list[torch.Tensor]
                    ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
     """The window's ray colours ``[N, 3]`` and which rays have one (``[N]`` bool; ``None`` when all do).
@@ -448,6 +480,17 @@ class Mapper:
         o, d, depth_gt, color = window_rays(window, self.config.rays_per_frame, self.generator,
                                             train_poses=pose_opt is not None)
         color_gt, color_valid = _window_colors(color, list(depth_gt.split(self.config.rays_per_frame)))
+        use_color = self.field_config.use_color
+        if self.config.sampler == "band" and self.config.compile:
+            n_band, k = band_sample_count(self.render_config, self.voxels.voxel_size_m, self.config.free_samples,
+                                          self.config.band_samples)
+            jitter = band_jitter(o.shape[0], k, self.device, self.voxels.embeddings.dtype, self.generator)
+            self.voxels.index_grid()  # built (and cached) here: a graph cannot build it (it reads the map's extent)
+            terms = LossTerms(*COMPILED_BAND_LOSS(
+                self.voxels, self.decoder, o, d, depth_gt, color_gt if use_color else None,
+                color_valid if use_color else None, jitter, self.render_config, self.loss_config,
+                self.config.free_samples, self.config.free_range_voxels * self.voxels.voxel_size_m, n_band))
+            return self._descend(terms, window, pose_opt)
         if self.config.sampler == "band":
             out = render_band(self.voxels, self.decoder, o, d, depth_gt, self.render_config,
                               self.config.free_samples, self.config.free_range_voxels * self.voxels.voxel_size_m,
@@ -457,8 +500,11 @@ class Mapper:
             t_far = depth_gt + self.render_config.truncation_m
             out = render_rays(self.voxels, self.decoder, o, d, self.render_config, training=True,
                               generator=self.generator, t_far=t_far)
-        terms = compute_losses(out, depth_gt, color_gt if self.field_config.use_color else None,
-                               self.loss_config, color_valid)
+        terms = compute_losses(out, depth_gt, color_gt if use_color else None, self.loss_config, color_valid)
+        return self._descend(terms, window, pose_opt)
+
+    def _descend(self, terms: LossTerms, window: list[Keyframe], pose_opt: torch.optim.Adam | None) -> LossTerms:
+        """Backward pass of ``terms.total`` and one Adam step of the map and (``pose_opt``) the window's poses."""
         self.optimizer.zero_grad(set_to_none=True)
         if pose_opt is not None:
             pose_opt.zero_grad(set_to_none=True)

@@ -47,6 +47,8 @@ __all__ = [
     "render_rays",
     "composite",
     "band_samples",
+    "band_jitter",
+    "band_sample_count",
     "render_band",
     "RenderedImage",
     "render_depth_image",
@@ -321,7 +323,8 @@ def composite(sdf: torch.Tensor, rgb: torch.Tensor | None, t: torch.Tensor, mask
 
 
 def band_samples(depth: torch.Tensor, dir_norm: torch.Tensor, n_band: int, n_free: int, truncation_m: float,
-                 free_range_m: float, training: bool, generator: torch.Generator | None = None) -> torch.Tensor:
+                 free_range_m: float, training: bool, generator: torch.Generator | None = None,
+                 jitter: torch.Tensor | None = None) -> torch.Tensor:
     """A fixed number of samples per ray around an observed depth (for rays with known depth: mapping).
 
     ``n_free`` strata over the ``free_range_m`` metres in front of the truncation band, then ``n_band``
@@ -329,6 +332,9 @@ def band_samples(depth: torch.Tensor, dir_norm: torch.Tensor, n_band: int, n_fre
 
     Args:
         depth: ``[N]`` observed depth ``D`` in t-units (> 0); dir_norm: ``[N]`` metres per unit ``t``.
+        jitter: ``[N, n_free + n_band]`` uniform ``[0, 1)`` positions in the strata, drawn by the caller
+            (:func:`band_jitter`, the same draw as ``training`` with ``generator``), so that a compiled caller
+            keeps the random draw outside its graph; None: drawn here.
 
     Returns ``t [N, n_free + n_band]``, ascending per ray, >= 0 (a free stratum that would start behind
     the camera is squeezed into ``[0, D - tr / |d|]``).
@@ -342,9 +348,11 @@ def band_samples(depth: torch.Tensor, dir_norm: torch.Tensor, n_band: int, n_fre
     band_hi = depth + truncation_m / dn
     free_lo = (band_lo - free_range_m / dn).clamp(min=0)
     k = n_free + n_band
-    gdev = generator.device if generator is not None else dev
-    u = (torch.rand(n, k, generator=generator, device=gdev, dtype=dtype).to(dev) if training
-         else torch.full((n, k), 0.5, dtype=dtype, device=dev))
+    if jitter is not None:
+        u = jitter
+    else:
+        u = (band_jitter(n, k, dev, dtype, generator) if training
+             else torch.full((n, k), 0.5, dtype=dtype, device=dev))
     j = torch.arange(k, device=dev, dtype=dtype)
     in_band = j >= n_free
     lo = torch.where(in_band, band_lo[:, None], free_lo[:, None])
@@ -353,10 +361,28 @@ def band_samples(depth: torch.Tensor, dir_norm: torch.Tensor, n_band: int, n_fre
     return lo + (pos + u) * width
 
 
+def band_jitter(n: int, k: int, device: torch.device, dtype: torch.dtype,
+                generator: torch.Generator | None = None) -> torch.Tensor:
+    """``[n, k]`` uniform ``[0, 1)`` stratum positions for :func:`band_samples`, drawn from ``generator`` (on its own
+    device, then moved to ``device``)."""
+    gdev = generator.device if generator is not None else device
+    return torch.rand(n, k, generator=generator, device=gdev, dtype=dtype).to(device)
+
+
+def band_sample_count(config: RenderConfig, voxel_size_m: float, n_free: int, n_band: int | None) -> tuple[int, int]:
+    """``(n_band, n_free + n_band)``: the band strata :func:`render_band` uses (``n_band``, or the renderer's step
+    when None) and the samples per ray."""
+    if n_band is None:
+        step = config.step_ratio * voxel_size_m
+        n_band = max(1, math.ceil(2 * config.truncation_m / step - 1e-9))
+    return n_band, n_free + n_band
+
+
 def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torch.Tensor, dirs: torch.Tensor,
                 depth: torch.Tensor, config: RenderConfig, n_free: int, free_range_m: float,
                 training: bool = True, generator: torch.Generator | None = None,
-                n_band: int | None = None, compact: bool | None = None) -> RenderOutput:
+                n_band: int | None = None, compact: bool | None = None,
+                jitter: torch.Tensor | None = None) -> RenderOutput:
     """Render rays of known depth from a fixed number of samples per ray (:func:`band_samples`): the
     mapping renderer. Same compositing and outputs as :func:`render_rays`, but every shape is fixed by
     ``N`` and the config (``n_band``, default ``ceil(2 tr / step)``, keeps :func:`render_rays`' sample spacing
@@ -375,6 +401,7 @@ def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torc
         n_free, free_range_m: free-space strata and the metres in front of the band they cover.
         n_band: strata inside the band (None: the renderer's step, ``config.step_ratio``).
         compact: evaluate only the samples inside the map (above; None: on a CPU).
+        jitter: the stratum positions, drawn by the caller (:func:`band_samples`); None: drawn here.
     """
     if origins.dim() != 2 or origins.shape[1] != 3:
         raise ShapeError("origins", tuple(origins.shape), "[N, 3]")
@@ -384,11 +411,9 @@ def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torc
     origins = origins.to(voxel_map.device, dtype)
     dirs = dirs.to(voxel_map.device, dtype)
     dn = dirs.detach().norm(dim=-1)
-    if n_band is None:
-        step = config.step_ratio * voxel_map.voxel_size_m
-        n_band = max(1, math.ceil(2 * config.truncation_m / step - 1e-9))
+    n_band, _ = band_sample_count(config, voxel_map.voxel_size_m, n_free, n_band)
     t = band_samples(depth.to(voxel_map.device, dtype), dn, n_band, n_free, config.truncation_m, free_range_m,
-                     training, generator).detach()
+                     training, generator, jitter).detach()
     pts = origins[:, None, :] + dirs[:, None, :] * t[:, :, None]  # [N, S, 3]
     n, s = t.shape
     flat = pts.reshape(-1, 3)

@@ -57,6 +57,10 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path, monkeypatch):
     tracked = accel["tracking compile"]
     assert isinstance(tracked["compile_fell_back"], bool) and tracked["tracking_build_s"] > 0
     assert abs(tracked["tracking_error_mm"] - accel["float32 eager (reference)"]["tracking_error_mm"]) < 0.05
+    # the compiled mapping iteration: the same map (a fixed-shape step, so rounding alone separates it)
+    mapped = accel["mapping compile"]
+    assert isinstance(mapped["compile_fell_back"], bool) and mapped["mapping_ms_per_iter"] > 0
+    assert mapped["sdf_dev_mm"] == 0.0  # its decoder is the float32 eager one; only the training path differs
 
 
 def test_budget_starts_no_section_once_spent_and_says_which(tmp_path: Path):
@@ -101,7 +105,8 @@ def test_lease_sizes_fit_a_short_slot():
     assert lease.realtime_s <= gpu_suite.FULL.realtime_s and lease.capacity_s <= gpu_suite.FULL.capacity_s
     assert set(lease.accel_variants) <= set(bench_accel.VARIANTS)
     assert "float32 eager (reference)" in lease.accel_variants
-    assert ("tracking.compile=true",) in lease.realtime_options  # the realtime rates with the compiled tracker too
+    # the realtime rates with the compiled tracker and mapping too
+    assert ("tracking.compile=true", "mapping.compile=true") in lease.realtime_options
 
 
 def test_capacity_worker_waits_for_go_and_reports_one_session():
