@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The GPU benchmark suite at lease sizes (`bench/gpu_suite.py --lease`: every section in ~7 minutes) on a CUDA
+# The GPU benchmark suite at lease sizes (`bench/gpu_suite.py --lease`: every section in ~6-7 minutes) on a CUDA
 # machine that has Python, PyTorch with CUDA, NumPy, SciPy, OpenCV and scikit-image but no internet and no
 # voxfusion install: the missing wheels and 7-Scenes frames come from .gpu-kit (scripts/gpu_kit.sh, run first
 # where pip works). Nothing is installed system-wide: the wheels go to a temporary folder on PYTHONPATH, and the

@@ -3,7 +3,7 @@
 Usage (from the repository root)::
 
     make bench-gpu                          # = python bench/gpu_suite.py: needs CUDA, ~10-15 min
-    python bench/gpu_suite.py --lease       # CUDA, every section at sizes that fit ~7 min (a lent GPU's short
+    python bench/gpu_suite.py --lease       # CUDA, every section at sizes that fit ~6-7 min (a lent GPU's short
                                             # slot: bench/gpu_lease.sh sets it up on a machine without internet)
     python bench/gpu_suite.py --smoke       # any machine (CPU): the same code paths at tiny sizes, seconds
     python bench/gpu_suite.py --capacity-max 8 --skip sevenscenes
@@ -38,7 +38,7 @@ Writes ``bench/results/gpu-<gpu name slug>.json`` (``--smoke``: a temporary fold
 :func:`voxfusion.core.eval.report.write_json`, with :func:`bench.machine.machine_info`, and prints a table. The
 file is rewritten after every section (``"complete": false`` until the last), so a run stopped by a time limit
 still leaves what it measured. ``--budget-s`` starts no section after that many seconds (the ones left out are
-listed under ``"not_run"``); ``--lease`` sets it to 420 s.
+listed under ``"not_run"``); ``--lease`` sets it to 360 s.
 """
 
 from __future__ import annotations
@@ -140,13 +140,13 @@ class SuiteSizes:
 
 FULL = SuiteSizes(640, 480, 120, 5, 10, 30, 5, 10.0, 30.0, (256, 192), 30, 10.0)
 LEASE = SuiteSizes(640, 480, 60, 5, 10, 20, 3, 8.0, 30.0, (256, 192), 20, 6.0, capacity_max=16,
-                   capacity_budget_s=150.0, sevenscenes_frames=100, accel_map_frames=11, accel_iters=5,
+                   capacity_budget_s=100.0, sevenscenes_frames=100, accel_map_frames=11, accel_iters=5,
                    accel_rounds=3, accel_variants=("float32 eager (reference)", "bfloat16", "tracking compile",
                                                    "mapping compile"),
-                   budget_s=420.0, realtime_options=(("tracking.compile=true", "mapping.compile=true"),))
-"""``--lease``: every section of ``FULL`` at sizes that end in about 7 minutes on one GPU (the realtime feeds 8 s,
-capacity rounds of 6 s for at most 150 s, three execution options on an 11-frame map), for a lent GPU whose
-whole slot is ~15 minutes, the machine's start included."""
+                   budget_s=360.0, realtime_options=(("tracking.compile=true", "mapping.compile=true"),))
+"""``--lease``: every section of ``FULL`` at sizes that end in about 6-7 minutes on one GPU (the realtime feeds 8 s,
+capacity rounds of 6 s for at most 100 s, four execution options on an 11-frame map; no section starts after
+360 s), for a lent GPU whose whole slot is ~15 minutes, the machine's start included."""
 SMOKE = SuiteSizes(32, 24, 6, 2, 2, 2, 1, 0.3, 30.0, (32, 24), 2, 0.3, tuple(TINY), capacity_max=2,
                    accel_map_frames=3, accel_iters=1, accel_rounds=2)
 
@@ -655,15 +655,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip", nargs="*", default=[], choices=["iterations", "realtime", "sevenscenes", "render",
                                                               "accel", "capacity"])
     ap.add_argument("--lease", action="store_true",
-                    help="CUDA, every section at sizes that end in ~7 minutes (a lent GPU's short slot)")
+                    help="CUDA, every section at sizes that end in ~6-7 minutes (a lent GPU's short slot)")
     ap.add_argument("--budget-s", type=float, default=None,
-                    help="start no section after this many seconds (default: none; --lease: 420)")
+                    help="start no section after this many seconds (default: none; --lease: 360)")
     ap.add_argument("--sevenscenes", type=Path, default=None,
                     help=f"the 7-Scenes capture of the realtime section (default {SEVENSCENES})")
     ap.add_argument("--capacity-max", type=int, default=None, help="most concurrent sessions tried (default 64)")
     ap.add_argument("--capacity-seconds", type=float, default=None, help="feeding per round (default 10 s)")
     ap.add_argument("--capacity-budget-s", type=float, default=None,
-                    help="no new round after this many seconds (default 900; --lease: 150)")
+                    help="no new round after this many seconds (default 900; --lease: 100)")
     ap.add_argument("--capacity-isolation", choices=["process", "thread"], default=None,
                     help="one process per session (default; as the server) or threads in this process (--smoke)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
