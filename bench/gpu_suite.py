@@ -34,6 +34,9 @@ Sections (every timed region sits between ``torch.cuda.synchronize()`` calls, af
   (:data:`HOLD_FRACTION`). It stops at the first count where any session falls below, or at
   ``--capacity-max`` / ``--capacity-budget-s``.
 
+``targets``: each of issue 11's GPU targets (:data:`GPU_TARGETS`) against every measurement that bears on it, met
+or not (:func:`target_verdicts`).
+
 Writes ``bench/results/gpu-<gpu name slug>.json`` (``--smoke``: a temporary folder) through
 :func:`voxfusion.core.eval.report.write_json`, with :func:`bench.machine.machine_info`, and prints a table. The
 file is rewritten after every section (``"complete": false`` until the last), so a run stopped by a time limit
@@ -554,6 +557,7 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
 
     def done() -> None:
         results["elapsed_s"] = time.perf_counter() - t_start
+        results["targets"] = target_verdicts(results)
         on_section(results)
 
     synth = SessionSpec("synthetic", sizes.width, sizes.height, sizes.unique_frames, sizes.realtime_s, sizes.feed_hz,
@@ -606,7 +610,45 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
             spec, sizes.capacity_max, budget, isolation))
         done()
     results["elapsed_s"] = time.perf_counter() - t_start
+    results["targets"] = target_verdicts(results)
     return results
+
+
+GPU_TARGETS = {"tracking_ms_per_iter": 2.0, "realtime_tracking_hz": 30.0, "realtime_mapping_rounds_per_s": 5.0,
+               "render_ms": 10.0}
+"""Issue 11's GPU targets: tracking <= 2 ms per iteration at the paper preset; a realtime session on 640x480 tracks
+>= 30 frames/s and maps >= 5 rounds/s; a 256x192 occlusion render <= 10 ms."""
+
+
+def target_verdicts(results: dict) -> list[dict]:
+    """Each GPU target (:data:`GPU_TARGETS`) against what ``results`` measured: one row per measurement that bears
+    on it (the geometric tracker in the ``iterations`` section and per compiled variant in ``accel``, each realtime
+    session, the render), with ``met`` True / False; measurements the run did not make are left out."""
+    rows = []
+
+    def row(target: str, where: str, value: float, bound: float, at_most: bool) -> None:
+        rows.append({"target": target, "where": where, "value": value, "bound": bound,
+                     "met": value <= bound if at_most else value >= bound})
+
+    for r in results.get("iterations", []):
+        if r["stage"] == "tracking (sdf)":
+            row("tracking ms/iter", "iterations: paper preset, eager", r["ms_per_iter"],
+                GPU_TARGETS["tracking_ms_per_iter"], at_most=True)
+    accel = results.get("accel", {})
+    if accel.get("preset") == "paper":  # per field evaluation of the geometric tracker, each execution option
+        for name, r in accel.get("variants", {}).items():
+            row("tracking ms/iter", f"accel: {name}", r["tracking_ms_per_eval"], GPU_TARGETS["tracking_ms_per_iter"],
+                at_most=True)
+    for key, r in results.get("realtime", {}).items():
+        row("realtime tracking Hz", f"realtime {key}", r["tracking_hz"], GPU_TARGETS["realtime_tracking_hz"],
+            at_most=False)
+        row("realtime mapping rounds/s", f"realtime {key}", r["mapping_rounds_per_s"],
+            GPU_TARGETS["realtime_mapping_rounds_per_s"], at_most=False)
+    if "render_mesh" in results:
+        rm = results["render_mesh"]
+        row("occlusion render ms", f"render {rm['render_wh'][0]}x{rm['render_wh'][1]} (median)",
+            rm["render_ms_median"], GPU_TARGETS["render_ms"], at_most=True)
+    return rows
 
 
 def _print_tables(results: dict) -> None:
@@ -641,6 +683,11 @@ def _print_tables(results: dict) -> None:
         rows.append({"what": f"peak GPU memory [MB] ({name}{': this process only' if per_process else ''})",
                      "value": m["peak_gpu_mb"]})
     print(format_table(rows, columns=["what", "value", "paper RTX 3090"], float_fmt=".2f"))
+    verdicts = results.get("targets", [])
+    if verdicts:
+        print()
+        print(format_table([{**v, "met": "yes" if v["met"] else "NO"} for v in verdicts],
+                           columns=["target", "where", "value", "bound", "met"], float_fmt=".2f"))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,6 +28,8 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path, monkeypatch):
     assert [("iterations" in w, "accel" in w, "capacity" in w) for w in written[:4]] == [
         (True, False, False), (True, False, False), (True, True, False), (True, True, True)]
     assert result["smoke"] is True and result["machine"]["cpu_model"] and result["not_run"] == []
+    assert {v["target"] for v in result["targets"]} == {"tracking ms/iter", "realtime tracking Hz",
+                                                         "realtime mapping rounds/s", "occlusion render ms"}
     stages = [r["stage"] for r in result["iterations"]]
     # on the CPU the default mapping path compacts its samples; the suite also times the fixed-shape one
     assert stages == [f"tracking ({m})" for m in gpu_suite.tracker_methods()] + ["mapping",
@@ -61,6 +63,24 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path, monkeypatch):
     mapped = accel["mapping compile"]
     assert isinstance(mapped["compile_fell_back"], bool) and mapped["mapping_ms_per_iter"] > 0
     assert mapped["sdf_dev_mm"] == 0.0  # its decoder is the float32 eager one; only the training path differs
+
+
+def test_target_verdicts_judge_each_measurement_against_its_bound():
+    results = {
+        "iterations": [{"stage": "tracking (sdf)", "ms_per_iter": 1.5}, {"stage": "mapping", "ms_per_iter": 40.0}],
+        "accel": {"preset": "paper", "variants": {"tracking compile": {"tracking_ms_per_eval": 2.5}}},
+        "realtime": {"synthetic": {"tracking_hz": 29.0, "mapping_rounds_per_s": 6.0}},
+        "render_mesh": {"render_wh": [256, 192], "render_ms_median": 12.0},
+    }
+    verdicts = [(v["target"], v["where"], v["met"]) for v in gpu_suite.target_verdicts(results)]
+    assert verdicts == [("tracking ms/iter", "iterations: paper preset, eager", True),
+                        ("tracking ms/iter", "accel: tracking compile", False),
+                        ("realtime tracking Hz", "realtime synthetic", False),
+                        ("realtime mapping rounds/s", "realtime synthetic", True),
+                        ("occlusion render ms", "render 256x192 (median)", False)]
+    # a CPU run of bench_accel (another preset) says nothing about the paper-preset target
+    results["accel"]["preset"] = "synthetic+cpu"
+    assert [v["where"] for v in gpu_suite.target_verdicts(results)].count("accel: tracking compile") == 0
 
 
 def test_budget_starts_no_section_once_spent_and_says_which(tmp_path: Path):
