@@ -21,7 +21,8 @@ preset on CUDA, where the GPU targets are stated), then:
   its previous frame's pose, median over ``--rounds`` (an evaluation is one field query + backward pass);
   ``tracking_error_mm`` / ``tracking_error_deg``: that pose against the reference pose;
 * ``sdf_dev_mm``: the largest SDF difference, at points near the surface, between this variant and the same
-  map decoded by the float32 eager reference (0 for the reference itself): what the option alone changes.
+  map decoded by the float32 eager reference (0 for the reference itself): what the option alone changes in the
+  decoder's arithmetic (0 as well for options that change how a map is trained or tracked, not decoded).
 
 Timed regions are closed by ``torch.cuda.synchronize()`` on CUDA. Keep the variant that wins where it runs:
 the engine defaults stay float32 eager until a measurement on that device says otherwise.
@@ -157,9 +158,12 @@ def _surface_points(data, T_world_cam: np.ndarray, n: int, device: torch.device)
 
 
 def run(device: str, smoke: bool, map_frames: int, iters: int, rounds: int,
-        variants: list[str] | None = None, overrides: list[str] | None = None) -> dict:
+        variants: list[str] | None = None, overrides: list[str] | None = None,
+        budget_s: float | None = None) -> dict:
     """Every variant (``variants``: a subset of :data:`VARIANTS` names) on ``device``, with config ``overrides``
-    (``key=value``) on the preset; the JSON-ready result."""
+    (``key=value``) on the preset; the JSON-ready result. ``budget_s``: no variant starts after that many seconds
+    (the ones left out are listed under ``not_run``)."""
+    t_start = time.perf_counter()
     dev = torch.device(device)
     cuda = dev.type == "cuda"
     width, height = (640, 480) if cuda and not smoke else (320, 240)
@@ -169,8 +173,11 @@ def run(device: str, smoke: bool, map_frames: int, iters: int, rounds: int,
     preset = "paper" if cuda and not smoke else preset_for(cap, "cpu").preset
     base = load_preset(preset, overrides, profile=cap.profile)
     frames = list(cap.frames(0, map_frames + 1))
-    rows = {}
+    rows, not_run = {}, []
     for name in variants or list(VARIANTS):
+        if budget_s is not None and time.perf_counter() - t_start >= budget_s:
+            not_run.append(name)
+            continue
         print(f"[accel] {name}", flush=True)
         rows[name] = measure_variant(base, VARIANTS[name], frames, map_frames, iters, rounds)
     ref = rows.get("float32 eager (reference)")
@@ -180,7 +187,7 @@ def run(device: str, smoke: bool, map_frames: int, iters: int, rounds: int,
             r["tracking_speedup"] = ref["tracking_ms_per_frame"] / r["tracking_ms_per_frame"]
     return {"device": str(dev), "preset": preset, "overrides": overrides, "size": [width, height],
             "map_frames": map_frames, "mapping_iters_per_round": iters, "rounds": rounds, "smoke": smoke,
-            "variants": rows}
+            "variants": rows, "not_run": not_run}
 
 
 def print_table(result: dict) -> None:

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# The GPU benchmark suite at lease sizes (`bench/gpu_suite.py --lease`: every section in ~6-7 minutes) on a CUDA
-# machine that has Python, PyTorch with CUDA, NumPy, SciPy, OpenCV and scikit-image but no internet and no
-# voxfusion install: the missing wheels and 7-Scenes frames come from .gpu-kit (scripts/gpu_kit.sh, run first
+# The GPU benchmark suite at lease sizes (`bench/gpu_suite.py --lease`: every section, no section started after
+# 360 s) on a CUDA machine that has Python, PyTorch with CUDA, NumPy, SciPy, OpenCV, scikit-image, PyYAML, Pillow,
+# tqdm and typer but no internet and no voxfusion install: the missing wheels and 7-Scenes frames come from .gpu-kit (scripts/gpu_kit.sh, run first
 # where pip works). Nothing is installed system-wide: the wheels go to a temporary folder on PYTHONPATH, and the
 # voxfusion package is this checkout's folders laid out as pyproject.toml maps them (voxfusion.core = core/, ...).
 #
@@ -10,16 +10,25 @@
 #   measured) and OUT_DIR/gpu-lease.log. PYTHON=... picks the interpreter (default python3). With --smoke it runs the
 #   suite's CPU smoke sizes instead: the same setup, checked on a machine without CUDA.
 set -euo pipefail
-cd "$(dirname "$0")/.."
 OUT=${1:?usage: bash bench/gpu_lease.sh OUT_DIR [gpu_suite.py options]}
 shift
+mkdir -p "$OUT"
+OUT=$(cd "$OUT" && pwd)  # before the cd below: a relative OUT_DIR is the caller's
+cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 KIT=.gpu-kit
 log() { printf '[gpu-lease] %s\n' "$*"; }
 
 [ -d "$KIT/wheels" ] || { echo "no $KIT/wheels here: run 'bash scripts/gpu_kit.sh' where pip works" >&2; exit 1; }
-mkdir -p "$OUT"
+# the kit's wheels are built for one Python (cp312 by default): say so plainly rather than through pip's refusal
+kit_py=$(cd "$KIT/wheels" && ls ./*-cp3*.whl 2>/dev/null | sed -n 's/.*-cp3\([0-9]*\)-.*/3.\1/p' | head -1)
+here_py=$("$PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')
+if [ -n "$kit_py" ] && [ "$kit_py" != "$here_py" ]; then
+    echo "the kit's wheels are for Python $kit_py, $PY is $here_py: rebuild it with 'bash scripts/gpu_kit.sh --python $here_py'" >&2
+    exit 1
+fi
 SITE=$(mktemp -d /tmp/voxfusion-site.XXXXXX)
+trap 'rm -rf "$SITE"' EXIT
 "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target "$SITE" "$KIT"/wheels/*.whl
 mkdir -p "$SITE/voxfusion"
 for entry in voxfusion/*; do

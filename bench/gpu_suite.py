@@ -59,6 +59,7 @@ import sys
 import tempfile
 import threading
 import time
+import traceback
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -124,6 +125,9 @@ class SuiteSizes:
     """``capacity``: most concurrent sessions tried (``--capacity-max`` lowers it)."""
     capacity_budget_s: float = 900.0
     """``capacity``: no new round after this many seconds of the section (``--capacity-budget-s``)."""
+    capacity_round_timeout_s: float = 300.0
+    """``capacity``: the most a round may take from its start signal (at least 20 feeds' worth), and three times
+    that for its workers to start up (import torch, the CUDA context, render their frames)."""
     sevenscenes_frames: int = 300
     """``realtime``: 7-Scenes frames decoded (fed back and forth)."""
     accel_map_frames: int = 31
@@ -143,7 +147,8 @@ class SuiteSizes:
 
 FULL = SuiteSizes(640, 480, 120, 5, 10, 30, 5, 10.0, 30.0, (256, 192), 30, 10.0)
 LEASE = SuiteSizes(640, 480, 60, 5, 10, 20, 3, 8.0, 30.0, (256, 192), 20, 6.0, capacity_max=16,
-                   capacity_budget_s=100.0, sevenscenes_frames=100, accel_map_frames=11, accel_iters=5,
+                   capacity_budget_s=100.0, capacity_round_timeout_s=60.0, sevenscenes_frames=100,
+                   accel_map_frames=11, accel_iters=5,
                    accel_rounds=3, accel_variants=("float32 eager (reference)", "bfloat16", "tracking compile",
                                                    "mapping compile"),
                    budget_s=360.0, realtime_options=(("tracking.compile=true", "mapping.compile=true"),))
@@ -472,7 +477,8 @@ def _worker_memory(results: list[RealtimeResult]) -> dict:
     return out
 
 
-def measure_capacity(spec: SessionSpec, max_sessions: int, budget_s: float, isolation: str) -> dict:
+def measure_capacity(spec: SessionSpec, max_sessions: int, budget_s: float, isolation: str,
+                     round_timeout_s: float = 300.0) -> dict:
     """Sessions held at the feed rate: 1, 2, 4, ... until one falls below (see the module docstring)."""
     rows, held, stop = [], 0, f"reached --capacity-max {max_sessions}"
     t_start = time.monotonic()
@@ -483,7 +489,8 @@ def measure_capacity(spec: SessionSpec, max_sessions: int, budget_s: float, isol
             break
         problem = None
         if isolation == "process":
-            results, problem = _run_processes(spec, n, timeout_s=max(300.0, 20 * spec.seconds))
+            results, problem = _run_processes(spec, n, timeout_s=max(round_timeout_s, 20 * spec.seconds),
+                                              ready_timeout_s=3 * round_timeout_s)
         else:
             results = _run_threads(spec, n)
         rates = [r.tracking_hz for r in results] or [0.0]
@@ -538,34 +545,48 @@ def suite_sizes(args: argparse.Namespace) -> SuiteSizes:
 
 def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lambda results: None) -> dict:
     """Every section that ``args`` does not skip; returns the JSON-ready result. ``on_section(results)`` is called
-    after each section with what has been measured so far (the caller writes it out)."""
+    after each section with what has been measured so far (the caller writes it out). A section that raises is
+    recorded under ``errors`` (its traceback printed) and the suite goes on with the next: a short GPU slot keeps
+    what the other sections measure."""
     sizes = suite_sizes(args)
     device = "cpu" if args.smoke else "cuda"
     overrides = [*sizes.overrides, *args.set]
     t_start = time.perf_counter()
-    results: dict = {"not_run": []}
     memory: dict = {}
-    results["memory"] = memory
+    results: dict = {"not_run": [], "errors": {}, "memory": memory}
 
-    def may_start(section: str) -> bool:
-        """Whether ``section`` starts: not past the budget (else it is recorded as not run)."""
-        if sizes.budget_s is None or time.perf_counter() - t_start < sizes.budget_s:
+    def left_s() -> float | None:
+        """Seconds of the budget left (None: no budget)."""
+        return None if sizes.budget_s is None else max(0.0, sizes.budget_s - (time.perf_counter() - t_start))
+
+    def may_start(*sections: str) -> bool:
+        """Whether ``sections[0]`` starts: not past the budget (else ``sections`` are recorded as not run)."""
+        if left_s() != 0.0:
             return True
-        results["not_run"].append(section)
-        print(f"[{section}] not run: the {sizes.budget_s:g} s budget is spent", flush=True)
+        results["not_run"].extend(sections)
+        print(f"[{sections[0]}] not run: the {sizes.budget_s:g} s budget is spent", flush=True)
         return False
 
+    def run(section: str, fn: Callable[[], object]) -> object | None:
+        """``_section(section, ...)``, with an exception recorded under ``errors`` (None returned) instead."""
+        try:
+            return _section(section, memory, fn)
+        except Exception as e:  # noqa: BLE001 - recorded, printed, and the suite goes on
+            traceback.print_exc()
+            results["errors"][section] = f"{type(e).__name__}: {e}"
+            return None
+
     def done() -> None:
-        results["elapsed_s"] = time.perf_counter() - t_start
-        results["targets"] = target_verdicts(results)
-        on_section(results)
+        on_section(_finish(results, t_start, args.iter_preset))
 
     synth = SessionSpec("synthetic", sizes.width, sizes.height, sizes.unique_frames, sizes.realtime_s, sizes.feed_hz,
                         device, tuple(overrides))
     frames, name, cap = load_frames(synth)
     if "iterations" not in args.skip and may_start("iterations"):
         iter_cfg = load_preset(args.iter_preset, [*overrides, f"device={device}"], profile=cap.profile)
-        results["iterations"] = _section("iterations", memory, lambda: measure_iterations(frames, iter_cfg, sizes))
+        rows = run("iterations", lambda: measure_iterations(frames, iter_cfg, sizes))
+        if rows is not None:
+            results["iterations"] = rows
         done()
     if "realtime" not in args.skip:
         specs = [("synthetic", synth)]
@@ -577,24 +598,21 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
                                                              unique_frames=sizes.sevenscenes_frames)))
         results["realtime"] = {}
         for key, spec in specs:
-            if not may_start(f"realtime/{key}"):
+            with_render = key == "synthetic" and "render" not in args.skip
+            if not may_start(f"realtime/{key}", *(["render_mesh"] if with_render else [])):
                 continue
-            fr, nm, cp = (frames, name, cap) if spec.capture == "synthetic" else load_frames(spec)
-            config, preset = session_config(spec, cp)
-            warm_s = warm_compiled(fr, config)
-            res, slam = _section(f"realtime/{key}", memory, lambda fr=fr, c=config, p=preset, nm=nm, s=spec:
-                                 run_realtime(fr, c, p, nm, s.seconds, s.feed_hz))
-            results["realtime"][key] = {**dataclasses.asdict(res), "compile_warmup_s": warm_s}
-            slam.finish(timeout_s=600)
-            if key == "synthetic" and "render" not in args.skip:
-                results["render_mesh"] = _section("render_mesh", memory,
-                                                  lambda s=slam, fr=fr: measure_render_and_mesh(s, fr, sizes))
-            slam.close()
+            out = run(f"realtime/{key}", lambda key=key, spec=spec, with_render=with_render:
+                      _realtime_section(spec, (frames, name, cap), sizes, memory, results, key, with_render))
+            if out is not None:
+                results["realtime"][key] = out
             done()
     if "accel" not in args.skip and may_start("accel"):
-        results["accel"] = _section("accel", memory, lambda: bench_accel.run(
+        accel = run("accel", lambda: bench_accel.run(
             device, args.smoke, sizes.accel_map_frames, sizes.accel_iters, sizes.accel_rounds,
-            variants=list(sizes.accel_variants) if sizes.accel_variants else None, overrides=args.set))
+            variants=list(sizes.accel_variants) if sizes.accel_variants else None, overrides=args.set,
+            budget_s=left_s()))
+        if accel is not None:
+            results["accel"] = accel
         done()
     if "capacity" not in args.skip and may_start("capacity"):
         # 30 distinct frames per session (played back and forth): every worker renders its own before it starts
@@ -603,15 +621,47 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
         if torch.cuda.is_available():  # hand the earlier sections' cached blocks back to the sessions' processes
             gc.collect()
             torch.cuda.empty_cache()
-        budget = sizes.capacity_budget_s
-        if sizes.budget_s is not None:  # the suite's own budget bounds the section's rounds too
-            budget = min(budget, max(0.0, sizes.budget_s - (time.perf_counter() - t_start)))
-        results["capacity"] = _section("capacity", memory, lambda: measure_capacity(
-            spec, sizes.capacity_max, budget, isolation))
+        left = left_s()  # the suite's own budget bounds the section's rounds too
+        budget = sizes.capacity_budget_s if left is None else min(sizes.capacity_budget_s, left)
+        capacity = run("capacity", lambda: measure_capacity(spec, sizes.capacity_max, budget, isolation,
+                                                            sizes.capacity_round_timeout_s))
+        if capacity is not None:
+            results["capacity"] = capacity
         done()
+    return _finish(results, t_start, args.iter_preset)
+
+
+def _finish(results: dict, t_start: float, iter_preset: str) -> dict:
     results["elapsed_s"] = time.perf_counter() - t_start
-    results["targets"] = target_verdicts(results)
+    results["targets"] = target_verdicts(results, iter_preset)
     return results
+
+
+def _realtime_section(spec: SessionSpec, synthetic: tuple[list[RGBDFrame], str, object], sizes: SuiteSizes,
+                      memory: dict, results: dict, key: str, with_render: bool) -> dict:
+    """One realtime session of the ``realtime`` section (and, with ``with_render``, the ``render_mesh`` section on
+    its final map): the session's row, with the seconds its compile warm-up took and the graphs compiled while it
+    was fed (0 when the warm-up covered them all)."""
+    frames, name, cap = synthetic if spec.capture == "synthetic" else load_frames(spec)
+    config, preset = session_config(spec, cap)
+    warm_s = warm_compiled(frames, config)
+    graphs = _compiled_graphs()
+    res, slam = run_realtime(frames, config, preset, name, spec.seconds, spec.feed_hz)
+    row = {**dataclasses.asdict(res), "compile_warmup_s": warm_s,
+           "graphs_compiled_during_feed": _compiled_graphs() - graphs}
+    try:
+        slam.finish(timeout_s=600)
+        if with_render:
+            results["render_mesh"] = _section("render_mesh", memory,
+                                              lambda: measure_render_and_mesh(slam, frames, sizes))
+    finally:
+        slam.close()
+    return row
+
+
+def _compiled_graphs() -> int:
+    """Graphs ``torch.compile`` has compiled in this process so far."""
+    return int(torch._dynamo.utils.counters["stats"]["unique_graphs"])
 
 
 GPU_TARGETS = {"tracking_ms_per_iter": 2.0, "realtime_tracking_hz": 30.0, "realtime_mapping_rounds_per_s": 5.0,
@@ -620,7 +670,7 @@ GPU_TARGETS = {"tracking_ms_per_iter": 2.0, "realtime_tracking_hz": 30.0, "realt
 >= 30 frames/s and maps >= 5 rounds/s; a 256x192 occlusion render <= 10 ms."""
 
 
-def target_verdicts(results: dict) -> list[dict]:
+def target_verdicts(results: dict, iter_preset: str = "paper") -> list[dict]:
     """Each GPU target (:data:`GPU_TARGETS`) against what ``results`` measured: one row per measurement that bears
     on it (the geometric tracker in the ``iterations`` section and per compiled variant in ``accel``, each realtime
     session, the render), with ``met`` True / False; measurements the run did not make are left out."""
@@ -632,7 +682,7 @@ def target_verdicts(results: dict) -> list[dict]:
 
     for r in results.get("iterations", []):
         if r["stage"] == "tracking (sdf)":
-            row("tracking ms/iter", "iterations: paper preset, eager", r["ms_per_iter"],
+            row("tracking ms/iter", f"iterations: {iter_preset} preset, eager", r["ms_per_iter"],
                 GPU_TARGETS["tracking_ms_per_iter"], at_most=True)
     accel = results.get("accel", {})
     if accel.get("preset") == "paper":  # per field evaluation of the geometric tracker, each execution option
@@ -695,8 +745,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--smoke", action="store_true", help="CPU, tiny config and sizes, output to a temp folder")
     ap.add_argument("--out", type=Path, default=None,
                     help="JSON path (default OUT_DIR/gpu-<gpu>.json, --lease: gpu-<gpu>-lease.json)")
-    ap.add_argument("--out-dir", type=Path, default=REPO_ROOT / "bench" / "results",
-                    help="folder of the default JSON path (default bench/results)")
+    ap.add_argument("--out-dir", type=Path, default=None,
+                    help="folder of the default JSON path (default bench/results; --smoke: a temporary folder)")
     ap.add_argument("--iter-preset", default="paper", help="preset of the iterations section (default paper)")
     ap.add_argument("--set", action="append", default=[], help="override for every config, e.g. tracking.rays=512")
     ap.add_argument("--skip", nargs="*", default=[], choices=["iterations", "realtime", "sevenscenes", "render",
@@ -707,8 +757,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="start no section after this many seconds (default: none; --lease: 360)")
     ap.add_argument("--sevenscenes", type=Path, default=None,
                     help=f"the 7-Scenes capture of the realtime section (default {SEVENSCENES})")
-    ap.add_argument("--capacity-max", type=int, default=None, help="most concurrent sessions tried (default 64)")
-    ap.add_argument("--capacity-seconds", type=float, default=None, help="feeding per round (default 10 s)")
+    ap.add_argument("--capacity-max", type=int, default=None,
+                    help="most concurrent sessions tried (default 64; --lease: 16)")
+    ap.add_argument("--capacity-seconds", type=float, default=None,
+                    help="feeding per round (default 10 s; --lease: 6 s)")
     ap.add_argument("--capacity-budget-s", type=float, default=None,
                     help="no new round after this many seconds (default 900; --lease: 100)")
     ap.add_argument("--capacity-isolation", choices=["process", "thread"], default=None,
@@ -724,11 +776,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.smoke and args.lease:
         ap.error("--smoke and --lease are two sizes: give one")
+    if args.sevenscenes is not None and not args.sevenscenes.is_dir():
+        ap.error(f"--sevenscenes {args.sevenscenes}: no such folder")
     torch.manual_seed(0)
     machine = machine_info()
     gpu = machine["cuda_device"]["name"] if machine.get("cuda_device") else "cpu-smoke"
-    out = args.out or (Path(tempfile.mkdtemp(prefix="gpu-suite-")) / "gpu-cpu-smoke.json" if args.smoke
-                       else args.out_dir / f"gpu-{_slug(gpu)}{'-lease' if args.lease else ''}.json")
+    out_dir = args.out_dir or (Path(tempfile.mkdtemp(prefix="gpu-suite-")) if args.smoke
+                               else REPO_ROOT / "bench" / "results")
+    out = args.out or out_dir / f"gpu-{_slug(gpu)}{'-lease' if args.lease else ''}.json"
     kind = "smoke: tiny sizes" if args.smoke else "lease sizes" if args.lease else "full sizes"
     print(f"gpu suite on {gpu} ({kind})", flush=True)
     t0 = time.perf_counter()

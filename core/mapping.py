@@ -130,7 +130,7 @@ class MappingConfig:
     grows), with the fixed-shape samples (``compact_samples`` is then ignored: compacting reads a count back, which
     a graph cannot hold) and the jitter drawn outside the graph from the same generator. ``band`` sampler only
     (``voxels`` stays eager). Where compilation fails the step logs one warning and runs eager. Aimed at GPUs,
-    where an eager iteration is ~2000 operators, each a kernel launch; ``make bench-gpu`` (accel) measures it."""
+    where an eager iteration is 1500-2000 operators, each a kernel launch; ``make bench-gpu`` (accel) measures it."""
 
     def stride_for(self, width: int) -> int:
         """The pixel stride of allocation for a ``width``-pixel image (``alloc_stride``, or 0's rule)."""
@@ -302,16 +302,18 @@ def window_rays(window: list[Keyframe], rays_per_frame: int, generator: torch.Ge
 
 def band_loss(voxels: VoxelMap, decoder: SDFDecoder, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
               color_gt: torch.Tensor | None, color_valid: torch.Tensor | None, jitter: torch.Tensor,
-              render: RenderConfig, loss: LossConfig, n_free: int, free_range_m: float, n_band: int | None
+              render: RenderConfig, loss: LossConfig, n_free: int, free_range_m: float, n_band: int,
+              compact: bool | None = False
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One mapping iteration's forward pass on the fixed-shape path: :func:`~.render.render_band` (``compact``
-    False, stratum positions ``jitter [N, S]``) and :func:`~.losses.compute_losses`, as the tuple ``(total, color,
-    depth, free_space, sdf)`` (:class:`~.losses.LossTerms`' fields). Rays ``origins`` / ``dirs [N, 3]``, observed
-    depth ``[N]``, colours ``[N, 3]`` or None. A free function of tensors and configuration, with no random draw and
-    no read-back, so that ``mapping.compile`` can compile it (:data:`COMPILED_BAND_LOSS`); :meth:`Mapper.step` runs
-    the same computation eagerly otherwise (the reference the tests hold it to)."""
+    """One mapping iteration's forward pass with the ``band`` sampler: :func:`~.render.render_band` (stratum positions
+    ``jitter [N, S]``, drawn by the caller; ``compact`` as there) and :func:`~.losses.compute_losses`, as the tuple
+    ``(total, color, depth, free_space, sdf)`` (:class:`~.losses.LossTerms`' fields). Rays ``origins`` / ``dirs
+    [N, 3]``, observed depth ``[N]``, colours ``[N, 3]`` or None. A free function of tensors and configuration with no
+    random draw, and with ``compact`` False no read-back either, so that ``mapping.compile`` can compile it
+    (:data:`COMPILED_BAND_LOSS`); :meth:`Mapper.step` calls it eagerly otherwise (the reference the tests hold the
+    compiled one to)."""
     out = render_band(voxels, decoder, origins, dirs, depth_gt, render, n_free, free_range_m, training=True,
-                      n_band=n_band, compact=False, jitter=jitter)
+                      n_band=n_band, compact=compact, jitter=jitter)
     t = compute_losses(out, depth_gt, color_gt, loss, color_valid)
     return t.total, t.color, t.depth, t.free_space, t.sdf
 
@@ -480,31 +482,23 @@ class Mapper:
         o, d, depth_gt, color = window_rays(window, self.config.rays_per_frame, self.generator,
                                             train_poses=pose_opt is not None)
         color_gt, color_valid = _window_colors(color, list(depth_gt.split(self.config.rays_per_frame)))
-        use_color = self.field_config.use_color
-        if self.config.sampler == "band" and self.config.compile:
+        color_gt = color_gt if self.field_config.use_color else None
+        if self.config.sampler == "band":
             n_band, k = band_sample_count(self.render_config, self.voxels.voxel_size_m, self.config.free_samples,
                                           self.config.band_samples)
             jitter = band_jitter(o.shape[0], k, self.device, self.voxels.embeddings.dtype, self.generator)
-            self.voxels.index_grid()  # built (and cached) here: a graph cannot build it (it reads the map's extent)
-            terms = LossTerms(*COMPILED_BAND_LOSS(
-                self.voxels, self.decoder, o, d, depth_gt, color_gt if use_color else None,
-                color_valid if use_color else None, jitter, self.render_config, self.loss_config,
-                self.config.free_samples, self.config.free_range_voxels * self.voxels.voxel_size_m, n_band))
-            return self._descend(terms, window, pose_opt)
-        if self.config.sampler == "band":
-            out = render_band(self.voxels, self.decoder, o, d, depth_gt, self.render_config,
-                              self.config.free_samples, self.config.free_range_voxels * self.voxels.voxel_size_m,
-                              training=True, generator=self.generator, n_band=self.config.band_samples,
-                              compact=self.config.compact_samples)
+            compiled = self.config.compile
+            if compiled:
+                self.voxels.index_grid()  # built (and cached) here: a graph cannot build it (it reads the map's extent)
+            terms = LossTerms(*(COMPILED_BAND_LOSS if compiled else band_loss)(
+                self.voxels, self.decoder, o, d, depth_gt, color_gt, color_valid, jitter, self.render_config,
+                self.loss_config, self.config.free_samples, self.config.free_range_voxels * self.voxels.voxel_size_m,
+                n_band, compact=False if compiled else self.config.compact_samples))
         else:
             t_far = depth_gt + self.render_config.truncation_m
             out = render_rays(self.voxels, self.decoder, o, d, self.render_config, training=True,
                               generator=self.generator, t_far=t_far)
-        terms = compute_losses(out, depth_gt, color_gt if use_color else None, self.loss_config, color_valid)
-        return self._descend(terms, window, pose_opt)
-
-    def _descend(self, terms: LossTerms, window: list[Keyframe], pose_opt: torch.optim.Adam | None) -> LossTerms:
-        """Backward pass of ``terms.total`` and one Adam step of the map and (``pose_opt``) the window's poses."""
+            terms = compute_losses(out, depth_gt, color_gt, self.loss_config, color_valid)
         self.optimizer.zero_grad(set_to_none=True)
         if pose_opt is not None:
             pose_opt.zero_grad(set_to_none=True)

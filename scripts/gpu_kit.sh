@@ -32,8 +32,9 @@ log() { printf '\033[1m[gpu-kit]\033[0m %s\n' "$*"; }
 
 git rev-parse --git-dir >/dev/null 2>&1 || { echo "run it in a git checkout (it measures what travels with git)" >&2; exit 1; }
 [ -x "$VENV_PY" ] || { echo "no .venv here: run 'make setup' first (the kit takes the versions it has)" >&2; exit 1; }
-rm -rf "$KIT"
-mkdir -p "$KIT/wheels"
+NEW=$(mktemp -d "${TMPDIR:-/tmp}/gpu-kit.XXXXXX")  # built aside, replacing the old kit only once complete
+trap 'rm -rf "$NEW"' EXIT
+mkdir -p "$NEW/wheels"
 
 # the versions this checkout runs with, so the GPU machine runs the same ones
 mapfile -t PINS < <("$VENV_PY" - "${PACKAGES[@]}" <<'EOF'
@@ -50,18 +51,19 @@ for p in manylinux_2_28_x86_64 manylinux_2_27_x86_64 manylinux_2_24_x86_64 manyl
     PLATFORMS+=(--platform "$p")
 done
 "$VENV_PY" -m pip download -q --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \
-    "${PLATFORMS[@]}" -d "$KIT/wheels" "${PINS[@]}" 2>&1 | grep -v "^WARNING: Location '.*' is ignored" || true
-n_wheels=$(find "$KIT/wheels" -name '*.whl' | wc -l)
+    "${PLATFORMS[@]}" -d "$NEW/wheels" "${PINS[@]}" 2>&1 | grep -v "^WARNING: Location '.*' is ignored" || true
+n_wheels=$(find "$NEW/wheels" -name '*.whl' | wc -l)
 [ "$n_wheels" -eq "${#PACKAGES[@]}" ] || { echo "expected ${#PACKAGES[@]} wheels, got $n_wheels" >&2; exit 1; }
 
 # what travels besides the kit: the tracked files and the untracked ones git does not ignore
-tree_kib=$(git ls-files -z --cached --others --exclude-standard | du -ck --files0-from=- 2>/dev/null | tail -1 | cut -f1)
-wheels_kib=$(du -sk "$KIT/wheels" | cut -f1)
+tree_kib=$(git ls-files -z --cached --others --exclude-standard | xargs -0 -r du -k 2>/dev/null \
+           | awk '{s += $1} END {print s + 0}' || true)  # files listed but deleted here are left out
+wheels_kib=$(du -sk "$NEW/wheels" | cut -f1)
 left_kib=$((MAX_MIB * 1024 - tree_kib - wheels_kib))
 
 SRC=../shared/data/sevenscenes_redkitchen
 if [ -d "$SRC" ]; then
-    DST="$KIT/sevenscenes_redkitchen"
+    DST="$NEW/sevenscenes_redkitchen"
     mkdir -p "$DST"
     cp "$SRC/camera-intrinsics.txt" "$DST/" 2>/dev/null || true
     n=0
@@ -80,6 +82,9 @@ if [ -d "$SRC" ]; then
 else
     log "no $SRC: the realtime section will run the synthetic room only"
 fi
+rm -rf "$KIT"
+mv "$NEW" "$KIT"
+trap - EXIT
 kit_kib=$(du -sk "$KIT" | cut -f1)
 log "kit $((kit_kib / 1024)) MiB + working tree $((tree_kib / 1024)) MiB = $(((kit_kib + tree_kib) / 1024)) MiB" \
     "(of --max-mib $MAX_MIB)"
