@@ -59,6 +59,10 @@ __all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem", "realtime_th
 
 log = logging.getLogger("voxfusion.slam")
 
+RETRY_MIN_GAIN = 0.5
+"""A retry after a gap (``tracking.retry_cost_factor``) replaces the first result only when its cost is below this
+fraction of the first's (or the first was lost): the wrong starts it recovers from cost 5-10 times a correct pose."""
+
 
 def realtime_thread_count(setting: int | None, current: int, usable_cores: int) -> int:
     """Torch intra-op threads for a realtime session's two workers on a CPU (``realtime_cpu_threads``):
@@ -138,6 +142,8 @@ class SlamStats:
     fps: float
     latency_ms: float
     map_version: int
+    frames_retried: int = 0
+    """Frames tracked a second time from the last tracked pose (``tracking.retry_cost_factor``)."""
 
 
 @dataclass(frozen=True)
@@ -236,6 +242,9 @@ class SlamSystem:
         self._latencies: deque[float] = deque(maxlen=100)
         self._streams: dict[str, torch.cuda.Stream] = {}
         self._good_tail: deque[FrameRecord] = deque(maxlen=2)  # the last two frames not lost, for priors
+        self._recent_costs: deque[float] = deque(maxlen=config.tracking.retry_window)  # tracked frames' costs
+        self.retried: list[int] = []
+        """Frame indices tracked a second time from the last tracked pose (``tracking.retry_cost_factor``)."""
         self._first_good: FrameRecord | None = None  # the frame the map started with (world_axes)
         self._threads_before: tuple[int, int] | None = None  # (torch's threads, the workers') while they run
 
@@ -348,6 +357,10 @@ class SlamSystem:
             else:
                 with self._tracking_threads():
                     res = self.tracker.track(data, prior, prior_from_device)
+                    if not prior_from_device and self._needs_retry(frame, res):
+                        res = self._retry_from_last_pose(data, res)
+                if not res.lost:
+                    self._recent_costs.append(res.loss)
                 rec = FrameRecord(frame.index, frame.timestamp_s, res.T_world_cam, lost=res.lost, tracking=res,
                                   received_at=received_at)
         rec.data = None if rec.lost else data
@@ -368,6 +381,72 @@ class SlamSystem:
         if self.on_pose is not None:
             self.on_pose(rec)
         return rec
+
+    def _needs_retry(self, frame: RGBDFrame, res: TrackResult) -> bool:
+        """Whether a tracked frame looks like a wrong start after a gap (``tracking.retry_cost_factor``): it follows
+        lost frames or comes ``retry_gap`` frame intervals after the last tracked one, and it is lost or costs more
+        than ``retry_cost_factor`` times the recent tracked frames' median."""
+        cfg = self.config.tracking
+        if cfg.retry_cost_factor <= 0 or not self._good_tail:
+            return False
+        good = list(self._good_tail)
+        after_lost = bool(self.records) and self.records[-1].lost
+        interval = good[-1].timestamp_s - good[-2].timestamp_s if len(good) > 1 else 0.0
+        late = interval > 0 and frame.timestamp_s - good[-1].timestamp_s >= cfg.retry_gap * interval
+        return (after_lost or late) and (res.lost or not self._cost_is_usual(res.loss))
+
+    def _cost_is_usual(self, cost: float) -> bool:
+        """Whether ``cost`` is within ``retry_cost_factor`` times the recent tracked frames' median (True while fewer
+        than ``retry_window`` frames were tracked)."""
+        costs = self._recent_costs
+        return len(costs) < costs.maxlen or cost <= self.config.tracking.retry_cost_factor * float(np.median(costs))
+
+    def _retry_turns(self) -> list[np.ndarray]:
+        """``[4, 4]`` rotations about the camera's own centre to try after a gap, nearest first: pan (about the
+        camera's y axis) by 0, +-step, ... +-max degrees, then tilt (x axis) by +-step."""
+        cfg = self.config.tracking
+        pans = [0.0]
+        a = cfg.retry_step_deg
+        while a <= cfg.retry_max_deg + 1e-9:
+            pans += [a, -a]
+            a += cfg.retry_step_deg
+        turns = [(1, p) for p in pans] + [(0, cfg.retry_step_deg), (0, -cfg.retry_step_deg)]
+        out = []
+        for axis, deg in turns:
+            c, s_ = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+            R = np.eye(4)
+            i, j = [(1, 2), (0, 2)][axis]  # the plane the rotation turns: y-z for the x axis, x-z for the y axis
+            R[i, i] = R[j, j] = c
+            R[i, j], R[j, i] = (-s_, s_) if axis == 0 else (s_, -s_)
+            out.append(R)
+        return out
+
+    def _retry_from_last_pose(self, data: FrameData, first: TrackResult) -> TrackResult:
+        """Track ``data`` again from the last tracked pose turned by each of :meth:`_retry_turns` until one costs as
+        usual; keep the result with the lowest cost, a lost one only when every try is
+        (``tracking.retry_cost_factor``)."""
+        self.retried.append(first.frame_index)
+
+        def rank(r: TrackResult) -> tuple[bool, float]:
+            return r.lost, r.loss if np.isfinite(r.loss) else float("inf")
+
+        last = self._good_tail[-1].current_pose()
+        best, tries, iterations, time_ms = first, 0, first.iterations, first.time_ms
+        for turn in self._retry_turns():
+            again = self.tracker.track(data, last @ turn, False)
+            tries += 1
+            iterations += again.iterations
+            time_ms += again.time_ms
+            # a retry replaces the first result only when clearly better: among poses that are all wrong (the view
+            # turned farther than the turns reach), the lowest cost is no better a guess than the motion prior's
+            clearly = first.lost or again.loss < RETRY_MIN_GAIN * first.loss
+            if clearly and rank(again) < rank(best):
+                best = again
+            if not best.lost and self._cost_is_usual(best.loss):
+                break
+        log.info("frame %d tracked again from the last pose (%d tries): cost %.3g%s -> %.3g%s", first.frame_index,
+                 tries, first.loss, " (lost)" if first.lost else "", best.loss, " (lost)" if best.lost else "")
+        return dataclasses.replace(best, iterations=iterations, time_ms=time_ms)
 
     @contextmanager
     def _tracking_threads(self) -> Iterator[None]:
@@ -597,7 +676,7 @@ class SlamSystem:
                 keyframes=len(self.mapper.keyframes) if self.mapper else 0,
                 voxels=self.mapper.voxels.n_voxels if self.mapper else 0,
                 fps=tracked / elapsed if elapsed > 0 else 0.0, latency_ms=lat,
-                map_version=self._snapshot.version if self._snapshot else 0)
+                map_version=self._snapshot.version if self._snapshot else 0, frames_retried=len(self.retried))
 
     def render_depth(self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int) -> RenderedImage:
         """Depth (and colour) rendered from the newest snapshot at a camera pose (AR occlusion)."""

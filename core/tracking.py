@@ -208,6 +208,29 @@ class TrackingConfig:
     frames ~8 ms less of ~90, but compiling took 7 s per process with torch's on-disk cache warm and ~30 s
     cold, more than a run of a few hundred frames saves (``python bench/bench_accel.py``, variant ``tracking
     compile``; ``make bench-gpu`` measures it on a GPU)."""
+    retry_cost_factor: float = 3.0
+    """Recovery after a gap: a frame that comes after lost frames, or ``retry_gap`` or more frame intervals after the
+    last tracked one (dropped frames), and whose tracking is lost or costs (``TrackResult.loss``) more than this
+    times the median cost of the last ``retry_window`` tracked frames, is tracked again from the last tracked pose
+    turned about the camera's own vertical axis (pan) by 0, +-``retry_step_deg``, ... up to +-``retry_max_deg``
+    and about its horizontal axis (tilt) by +-``retry_step_deg``, nearest turns first, until one costs no more than
+    that; the result with the lowest cost is kept if it costs less than half the first's (:data:`.slam.RETRY_MIN_GAIN`;
+    a lost one only if every try is). The motion prior extrapolates
+    the last velocity over the gap, so a camera that turned or stopped while frames were missing starts far from
+    where it is, and the solver can settle in a wrong minimum without being lost, after which the map grows a
+    second copy of the scene: the synthetic room swinging at up to 180 deg/s with frames 40-54 without depth
+    (seed 1) tracked frame 55 13 cm / 22 deg off (cost 8.6) from the extrapolated prior, 0.7 cm / 0.1 deg (cost
+    1.05) from the last pose. Frames without a gap are never retried (a view turning into unmapped space costs more
+    too, and is not a wrong start), nor frames with a device prior (``T_world_cam_device``: the device measured the
+    motion over the gap). 0 turns it off."""
+    retry_window: int = 10
+    """Tracked frames whose median cost is the reference of ``retry_cost_factor`` (no retry before this many)."""
+    retry_gap: float = 2.5
+    """A frame this many frame intervals (the last two tracked frames') or more after the last tracked one comes
+    after a gap (``retry_cost_factor``); so does a frame after lost ones."""
+    retry_step_deg: float = 15.0
+    retry_max_deg: float = 90.0
+    """The turns ``retry_cost_factor`` tries: pan every ``retry_step_deg`` up to ``retry_max_deg`` either way."""
     refine_iters: int = 0
     """``sdf`` method: iterations of the render tracker run after it (0: none), with the small steps of
     ``lr_device_prior`` (it starts at the ``sdf`` tracker's pose, a few millimetres from the answer)."""
@@ -215,7 +238,12 @@ class TrackingConfig:
     """Loss weights used for tracking."""
 
     def __post_init__(self) -> None:
-        for name in ("rays", "iters", "patience", "check_every", "sdf_points", "sdf_levels", "sdf_iters"):
+        if not self.retry_cost_factor >= 0:
+            raise ConfigError("retry_cost_factor", f"must be >= 0 (0: off), got {self.retry_cost_factor}")
+        if not (self.retry_gap > 1 and self.retry_step_deg > 0 and self.retry_max_deg >= 0):
+            raise ConfigError("retry_gap", "need retry_gap > 1, retry_step_deg > 0 and retry_max_deg >= 0")
+        for name in ("rays", "iters", "patience", "check_every", "sdf_points", "sdf_levels", "sdf_iters",
+                     "retry_window"):
             if getattr(self, name) < 1:
                 raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
         if not (self.lr > 0 and self.lr_device_prior > 0 and self.lr_rot_ratio > 0):
