@@ -276,18 +276,39 @@ def _open(args: argparse.Namespace) -> tuple[Capture, trimesh.Trimesh | None, st
         name = (f"synthetic_{w}x{h}_{n}f_seed{args.seed}" + ("_lidar" if args.lidar else "")
                 + (f"_yaw{args.yaw_rate_deg_s:g}" if args.yaw_rate_deg_s else ""))
         desc = {"kind": "synthetic", "config": asdict(config)}
-        return capture, capture.gt_mesh, name, desc
-    from voxfusion.core.datasets import detect_format, open_capture
+        gt = capture.gt_mesh
+    else:
+        from voxfusion.core.datasets import detect_format, open_capture
 
-    fmt = detect_format(args.capture)
-    capture = open_capture(args.capture, limit=args.max_frames)
-    gt = load_mesh(capture.gt_mesh_path) if capture.gt_mesh_path is not None else None
-    name = capture.name + (f"_{len(capture)}f" if args.max_frames is not None else "")
-    desc = {"kind": fmt, "path": str(Path(args.capture)), "gt_mesh_path": capture.gt_mesh_path}
+        fmt = detect_format(args.capture)
+        capture = open_capture(args.capture, limit=args.max_frames)
+        gt = load_mesh(capture.gt_mesh_path) if capture.gt_mesh_path is not None else None
+        name = capture.name + (f"_{len(capture)}f" if args.max_frames is not None else "")
+        desc = {"kind": fmt, "path": str(Path(args.capture)), "gt_mesh_path": capture.gt_mesh_path}
+    if args.depth_gap is not None:
+        from functools import partial
+
+        from voxfusion.core.datasets.transforms import TransformedCapture, drop_depth
+
+        start, length = args.depth_gap
+        capture = TransformedCapture(capture, partial(drop_depth, start=start, stop=start + length))
+        name += f"_gap{start}+{length}"
+        desc["depth_gap"] = {"start": start, "frames": length}
     return capture, gt, name, desc
 
 
 # ------------------------------------------------------------------------------------------ evaluation
+
+
+def _gap(text: str) -> tuple[int, int]:
+    """``START+FRAMES`` -> ``(START, FRAMES)`` (``--depth-gap``)."""
+    try:
+        start, length = (int(v) for v in text.split("+"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START+FRAMES, e.g. 40+15, got {text!r}") from None
+    if start < 0 or length < 1:
+        raise argparse.ArgumentTypeError(f"need START >= 0 and FRAMES >= 1, got {text!r}")
+    return start, length
 
 
 def _cm(x: float | None) -> float | None:
@@ -366,6 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lidar", action="store_true", help="synthetic: iPhone-LiDAR-like noisy 256x192 depth")
     p.add_argument("--yaw-rate-deg-s", type=float, default=0.0,
                    help="synthetic: fast rotation, an extra yaw swing peaking at this rate (deg/s; 0 = off)")
+    p.add_argument("--depth-gap", type=_gap, default=None, metavar="START+FRAMES",
+                   help="no depth in frames START .. START+FRAMES-1 (a sensor that saw nothing): how tracking comes "
+                        "back after a gap, e.g. 40+15")
     p.add_argument("--method", nargs="+", default=["baseline"], choices=[*METHODS, *PLANNED_METHODS],
                    help="methods to run, in order (default: baseline)")
     p.add_argument("--max-frames", type=int, default=None, help="use at most this many frames")

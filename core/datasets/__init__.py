@@ -20,6 +20,7 @@ from .transforms import (
     SlicedCapture,
     TransformedCapture,
     clip_depth,
+    drop_depth,
     filter_depth_by_confidence,
     resize_frame,
 )
@@ -47,6 +48,7 @@ __all__ = [
     "resize_frame",
     "filter_depth_by_confidence",
     "clip_depth",
+    "drop_depth",
     "TransformedCapture",
     "SlicedCapture",
 ]

@@ -28,6 +28,7 @@ __all__ = [
     "resize_frame",
     "filter_depth_by_confidence",
     "clip_depth",
+    "drop_depth",
     "TransformedCapture",
     "SlicedCapture",
 ]
@@ -67,6 +68,16 @@ def filter_depth_by_confidence(frame: RGBDFrame, min_confidence: int) -> RGBDFra
         return frame
     depth_m = np.where(frame.confidence >= min_confidence, frame.depth_m, np.float32(0.0))
     return frame.with_(depth_m=depth_m.astype(np.float32))
+
+
+def drop_depth(frame: RGBDFrame, start: int, stop: int) -> RGBDFrame:
+    """No depth (all 0) in frames ``start <= frame.index < stop``: a sensor that saw nothing for a while (pointed at
+    the sky, covered, too close), for testing how tracking comes back after the gap."""
+    if not 0 <= start <= stop:
+        raise ValidationError("start/stop", f"need 0 <= start <= stop, got {start}, {stop}")
+    if not start <= frame.index < stop:
+        return frame
+    return frame.with_(depth_m=np.zeros_like(frame.depth_m))
 
 
 def clip_depth(frame: RGBDFrame, min_m: float = 0.0, max_m: float = float("inf")) -> RGBDFrame:

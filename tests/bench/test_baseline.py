@@ -250,3 +250,16 @@ def test_real_tum_capture(shared_data):
     ate = compute_ate(res.trajectory.T_world_cam, ref, TrajectoryEvalConfig(align="se3"))
     assert len(res.trajectory) == len(capture) and res.n_tracking_failures == 0
     assert ate.rmse_m < 0.03 and len(res.mesh.faces) > 1000
+
+
+def test_run_py_depth_gap_blanks_frames_and_names_the_result():
+    from bench.run import _open, build_parser
+
+    args = build_parser().parse_args(["--synthetic", "--frames", "6", "--width", "32", "--height", "24",
+                                      "--depth-gap", "2+3"])
+    capture, _, name, desc = _open(args)
+    assert name.endswith("_gap2+3") and desc["depth_gap"] == {"start": 2, "frames": 3}
+    assert [bool((capture[i].depth_m > 0).any()) for i in range(6)] == [True, True, False, False, False, True]
+    for bad in ("2", "2+0", "-1+3", "a+b"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["--synthetic", "--depth-gap", bad])

@@ -15,6 +15,7 @@ from voxfusion.core.datasets import (
     SlicedCapture,
     TransformedCapture,
     clip_depth,
+    drop_depth,
     filter_depth_by_confidence,
     resize_frame,
 )
@@ -78,6 +79,15 @@ def test_confidence_filter_and_clip():
     assert kept.sum() == ((f.depth_m >= 1.0) & (f.depth_m <= 3.0)).sum()
     with pytest.raises(ValidationError):
         clip_depth(f, 3.0, 1.0)
+
+
+def test_drop_depth_blanks_the_frames_of_the_gap_only():
+    cap = TransformedCapture(_ListCapture(6), partial(drop_depth, start=2, stop=4))
+    valid = [int((cap[i].depth_m > 0).sum()) for i in range(6)]
+    assert valid[2] == valid[3] == 0 and all(v > 0 for k, v in enumerate(valid) if k not in (2, 3))
+    assert cap[2].color is not None and cap[2].index == 2  # only the depth goes
+    with pytest.raises(ValidationError):
+        drop_depth(_frame(), 3, 1)
 
 
 def test_transformed_and_sliced_captures_are_lazy():
