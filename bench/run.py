@@ -460,10 +460,10 @@ def run_benchmark(args: argparse.Namespace, argv: list[str]) -> dict:
     for method in args.method:
         print(f"[bench] {method} on {name} ({len(recorder)} frames) ...", file=sys.stderr, flush=True)
         results[method] = METHODS[method].runner(recorder, args)
-    if args.synthetic:
-        reference = capture.trajectory
-    else:
-        reference = recorder.reference_trajectory()
+    from voxfusion.core.datasets.synthetic import SyntheticCapture
+
+    # the synthetic room knows its whole trajectory; any other capture (a wrapped one too) gives its frames' poses
+    reference = capture.trajectory if isinstance(capture, SyntheticCapture) else recorder.reference_trajectory()
     views = None
     if gt_mesh is not None and reference is not None and args.cull_stride > 0:
         views = views_from_frames(f for f in capture.frames(step=args.cull_stride) if f.T_world_cam is not None)

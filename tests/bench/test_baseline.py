@@ -263,3 +263,13 @@ def test_run_py_depth_gap_blanks_frames_and_names_the_result():
     for bad in ("2", "2+0", "-1+3", "a+b"):
         with pytest.raises(SystemExit):
             build_parser().parse_args(["--synthetic", "--depth-gap", bad])
+
+
+def test_run_py_with_a_depth_gap_runs_and_evaluates(tmp_path):
+    from bench.run import main
+
+    main(["--synthetic", "--frames", "6", "--width", "48", "--height", "36", "--depth-gap", "2+2", "--method",
+          "baseline", "--mesh-samples", "2000", "--out", str(tmp_path), "--no-progress"])
+    result = json.loads(next(tmp_path.glob("*_gap2+2.json")).read_text())
+    assert result["capture"]["depth_gap"] == {"start": 2, "frames": 2}
+    assert result["methods"]["baseline"]["n_frames"] == 6 and result["methods"]["baseline"]["ate_aligned"] is not None
