@@ -358,7 +358,7 @@ class SlamSystem:
                 with self._tracking_threads():
                     res = self.tracker.track(data, prior, prior_from_device)
                     if not prior_from_device and self._needs_retry(frame, res):
-                        res = self._retry_from_last_pose(data, res)
+                        res = self._retry_from_other_starts(data, res, prior)
                 if not res.lost:
                     self._recent_costs.append(res.loss)
                 rec = FrameRecord(frame.index, frame.timestamp_s, res.T_world_cam, lost=res.lost, tracking=res,
@@ -421,19 +421,36 @@ class SlamSystem:
             out.append(R)
         return out
 
-    def _retry_from_last_pose(self, data: FrameData, first: TrackResult) -> TrackResult:
-        """Track ``data`` again from the last tracked pose turned by each of :meth:`_retry_turns` until one costs as
-        usual; keep the result with the lowest cost, a lost one only when every try is
+    def _retry_starts(self, prior: np.ndarray) -> np.ndarray:
+        """``[K, 4, 4]`` start poses to try after a gap: the last tracked pose turned by each of :meth:`_retry_turns`
+        and moved, in its camera's frame, by the translation the motion prior (``prior``) extrapolated and by every
+        offset of a horizontal grid (camera x and z, every ``retry_step_m`` up to ``retry_reach_m`` either way)."""
+        cfg = self.config.tracking
+        last = self._good_tail[-1].current_pose()
+        t_prior = invert_pose(last)[:3, :3] @ (prior[:3, 3] - last[:3, 3])  # the prior's translation, camera frame
+        n = int(round(cfg.retry_reach_m / cfg.retry_step_m))
+        grid = np.arange(-n, n + 1) * cfg.retry_step_m
+        moves = [t_prior] + [np.array([x, 0.0, z]) for x in grid for z in grid]
+        turns = np.stack(self._retry_turns())  # [T, 4, 4]
+        starts = np.repeat(turns[None], len(moves), axis=0)  # [M, T, 4, 4]
+        starts[:, :, :3, 3] = np.asarray(moves)[:, None, :]
+        return last @ starts.reshape(-1, 4, 4)
+
+    def _retry_from_other_starts(self, data: FrameData, first: TrackResult, prior: np.ndarray) -> TrackResult:
+        """Track ``data`` again from the :meth:`_retry_starts` where its depth fits the map best
+        (:meth:`.tracking.Tracker.pose_costs`), best first, until one costs as usual; keep the result with the lowest
+        cost if it costs clearly less than the first (:data:`RETRY_MIN_GAIN`), a lost one only when every try is
         (``tracking.retry_cost_factor``)."""
         self.retried.append(first.frame_index)
 
         def rank(r: TrackResult) -> tuple[bool, float]:
             return r.lost, r.loss if np.isfinite(r.loss) else float("inf")
 
-        last = self._good_tail[-1].current_pose()
+        starts = self._retry_starts(prior)
+        order = np.argsort(self.tracker.pose_costs(data, starts), kind="stable")
         best, tries, iterations, time_ms = first, 0, first.iterations, first.time_ms
-        for turn in self._retry_turns():
-            again = self.tracker.track(data, last @ turn, False)
+        for k in order[:self.config.tracking.retry_tracks]:
+            again = self.tracker.track(data, starts[k], False)
             tries += 1
             iterations += again.iterations
             time_ms += again.time_ms
@@ -444,8 +461,9 @@ class SlamSystem:
                 best = again
             if not best.lost and self._cost_is_usual(best.loss):
                 break
-        log.info("frame %d tracked again from the last pose (%d tries): cost %.3g%s -> %.3g%s", first.frame_index,
-                 tries, first.loss, " (lost)" if first.lost else "", best.loss, " (lost)" if best.lost else "")
+        log.info("frame %d tracked again from %d of %d other starts: cost %.3g%s -> %.3g%s", first.frame_index,
+                 tries, len(starts), first.loss, " (lost)" if first.lost else "", best.loss,
+                 " (lost)" if best.lost else "")
         return dataclasses.replace(best, iterations=iterations, time_ms=time_ms)
 
     @contextmanager

@@ -45,6 +45,7 @@ from .tracking_sdf import (
     SdfSolverConfig,
     depth_reference,
     gray_images,
+    linearize,
     sample_points,
     solve_pose,
 )
@@ -211,18 +212,21 @@ class TrackingConfig:
     retry_cost_factor: float = 3.0
     """Recovery after a gap: a frame that comes after lost frames, or ``retry_gap`` or more frame intervals after the
     last tracked one (dropped frames), and whose tracking is lost or costs (``TrackResult.loss``) more than this
-    times the median cost of the last ``retry_window`` tracked frames, is tracked again from the last tracked pose
-    turned about the camera's own vertical axis (pan) by 0, +-``retry_step_deg``, ... up to +-``retry_max_deg``
-    and about its horizontal axis (tilt) by +-``retry_step_deg``, nearest turns first, until one costs no more than
-    that; the result with the lowest cost is kept if it costs less than half the first's (:data:`.slam.RETRY_MIN_GAIN`;
-    a lost one only if every try is). The motion prior extrapolates
-    the last velocity over the gap, so a camera that turned or stopped while frames were missing starts far from
-    where it is, and the solver can settle in a wrong minimum without being lost, after which the map grows a
-    second copy of the scene: the synthetic room swinging at up to 180 deg/s with frames 40-54 without depth
-    (seed 1) tracked frame 55 13 cm / 22 deg off (cost 8.6) from the extrapolated prior, 0.7 cm / 0.1 deg (cost
-    1.05) from the last pose. Frames without a gap are never retried (a view turning into unmapped space costs more
-    too, and is not a wrong start), nor frames with a device prior (``T_world_cam_device``: the device measured the
-    motion over the gap). 0 turns it off."""
+    times the median cost of the last ``retry_window`` tracked frames, is tracked again from other start poses: the
+    last tracked pose turned about the camera's own vertical axis (pan) by 0, +-``retry_step_deg``, ... up to
+    +-``retry_max_deg`` and about its horizontal axis (tilt) by +-``retry_step_deg``, each moved by the translation
+    the motion prior extrapolated over the gap and by every offset of a grid in the camera's horizontal plane
+    (``retry_reach_m``, ``retry_step_m``). They are ranked by how well the frame's depth
+    fits the map there (:meth:`Tracker.pose_costs`, one field query each), and the best ``retry_tracks`` are
+    tracked in that order until one costs no more than the factor; the result with the lowest cost is kept if it
+    costs under half the first's (:data:`.slam.RETRY_MIN_GAIN`; a lost one only if every try is). The motion prior
+    extrapolates the last velocity over the gap, so a camera that turned, stopped or walked on while frames were
+    missing starts far from where it is, and the solver can settle in a wrong minimum without being lost, after
+    which the map grows a second copy of the scene: the synthetic room swinging at up to 180 deg/s with frames
+    40-54 without depth (seed 1) tracked frame 55 13 cm / 22 deg off (cost 8.6) from the extrapolated prior,
+    0.7 cm / 0.1 deg (cost 1.05) from the last pose. Frames without a gap are never retried (a view turning into
+    unmapped space costs more too, and is not a wrong start), nor frames with a device prior
+    (``T_world_cam_device``: the device measured the motion over the gap). 0 turns it off."""
     retry_window: int = 10
     """Tracked frames whose median cost is the reference of ``retry_cost_factor`` (no retry before this many)."""
     retry_gap: float = 2.5
@@ -231,6 +235,12 @@ class TrackingConfig:
     retry_step_deg: float = 15.0
     retry_max_deg: float = 90.0
     """The turns ``retry_cost_factor`` tries: pan every ``retry_step_deg`` up to ``retry_max_deg`` either way."""
+    retry_reach_m: float = 0.2
+    retry_step_m: float = 0.1
+    """The moves ``retry_cost_factor`` tries besides the prior's: a grid over the camera's x and z axes (its image
+    horizontal and optical axis), every ``retry_step_m`` up to ``retry_reach_m`` metres either way."""
+    retry_tracks: int = 4
+    """The most start poses ``retry_cost_factor`` tracks from (the best-fitting ones)."""
     refine_iters: int = 0
     """``sdf`` method: iterations of the render tracker run after it (0: none), with the small steps of
     ``lr_device_prior`` (it starts at the ``sdf`` tracker's pose, a few millimetres from the answer)."""
@@ -240,10 +250,12 @@ class TrackingConfig:
     def __post_init__(self) -> None:
         if not self.retry_cost_factor >= 0:
             raise ConfigError("retry_cost_factor", f"must be >= 0 (0: off), got {self.retry_cost_factor}")
-        if not (self.retry_gap > 1 and self.retry_step_deg > 0 and self.retry_max_deg >= 0):
-            raise ConfigError("retry_gap", "need retry_gap > 1, retry_step_deg > 0 and retry_max_deg >= 0")
+        if not (self.retry_gap > 1 and self.retry_step_deg > 0 and self.retry_max_deg >= 0 and self.retry_step_m > 0
+                and self.retry_reach_m >= 0):
+            raise ConfigError("retry_gap", "need retry_gap > 1, retry_step_deg > 0, retry_max_deg >= 0, "
+                              "retry_step_m > 0 and retry_reach_m >= 0")
         for name in ("rays", "iters", "patience", "check_every", "sdf_points", "sdf_levels", "sdf_iters",
-                     "retry_window"):
+                     "retry_window", "retry_tracks"):
             if getattr(self, name) < 1:
                 raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
         if not (self.lr > 0 and self.lr_device_prior > 0 and self.lr_rot_ratio > 0):
@@ -399,6 +411,21 @@ class Tracker:
             out = dataclasses.replace(out, T_world_cam=np.asarray(T_prior, dtype=np.float64).copy())
         return dataclasses.replace(out, T_prior=np.asarray(T_prior, dtype=np.float64),
                                    time_ms=(time.perf_counter() - t0) * 1e3)
+
+    def pose_costs(self, frame: FrameData, poses: np.ndarray, n_points: int = 1024) -> np.ndarray:
+        """How well ``frame``'s depth fits the map at each of ``poses [K, 4, 4]`` (camera-to-world), without moving
+        them: the mean robust point-to-SDF cost of ``n_points`` of its points (the same points at every pose; a point
+        outside the map costs as much as one at the residual cap), as ``[K]`` float64, in the units of
+        :attr:`TrackResult.loss`'s map term. Ranks start poses for :meth:`track` (recovery after a gap), whatever
+        the tracking method; one field query per pose, no frame-to-frame term."""
+        if self.voxels is None or self.decoder is None:
+            raise ConfigError("map", "tracker has no map snapshot yet (the first frame initialises the map)")
+        cfg = self.config
+        pts = sample_points(frame, n_points, self.generator)
+        solver = SdfSolverConfig(huber_m=cfg.sdf_huber_m, max_residual_m=cfg.sdf_max_residual_m)
+        T = torch.as_tensor(np.asarray(poses, dtype=np.float64), device=self.voxels.device)
+        costs = [linearize(self.voxels, self.decoder, pts, T[k], solver)[0] for k in range(T.shape[0])]
+        return torch.stack(costs).cpu().numpy()
 
     # ------------------------------------------------------------------ sdf (geometric) tracker
     def _track_sdf(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool) -> TrackResult:

@@ -430,3 +430,18 @@ def test_retry_turns_are_rotations_about_the_camera_nearest_first():
     assert turns[1][0, 2] > 0
     with pytest.raises(ConfigError):
         load_preset("cpu", ["tracking.retry_gap=1"])
+
+
+def test_pose_costs_rank_the_true_pose_first_and_rise_with_the_error(capture, mapped):
+    """The cheap fit of a frame's depth to the map at given poses (what ranks start poses after a gap): lowest at
+    the frame's own pose, higher the farther a pose is, the same points at every pose."""
+    cfg, mapper = mapped
+    tracker = Tracker(TrackingConfig(), cfg.render, use_color=True)
+    tracker.set_map(mapper.voxels.snapshot(), mapper.decoder)
+    f = capture[7]
+    steps = [0.0, 0.5, 1.0, 2.0]  # times the perturbation of perturbed_prior
+    xi = torch.tensor([0.03, -0.02, 0.025, np.deg2rad(2.0), np.deg2rad(-1.5), np.deg2rad(1.0)], dtype=torch.float64)
+    poses = np.stack([f.T_world_cam @ se3_exp(xi * s).numpy() for s in steps])
+    costs = tracker.pose_costs(frame_to_device(f, "cpu"), poses)
+    assert costs.shape == (4,) and np.all(np.isfinite(costs))
+    assert list(np.argsort(costs)) == [0, 1, 2, 3] and costs[3] > 2 * costs[0]
