@@ -9,7 +9,9 @@
 #   * TUM fr1_desk (9 frames) and fr3 structure_notexture_far (120 frames), seeds 0/1/2.
 #   * held-out seeds (synthetic room seeds 3-6, fast rotation seeds 3-5), both methods: captures the targets'
 #     seeds do not cover.
-# Usage: bash bench/engine_targets.sh [--quick | --heldout]   (--quick: seed 0 only, no held-out seeds;
+#   * with --gap: only the recovery after a gap, the fast-rotation room seeds 0/1/2 with frames 40-54 without depth,
+#     both methods, and ours again without the retry (bench/results/gap_*.json).
+# Usage: bash bench/engine_targets.sh [--quick | --heldout | --gap]   (--quick: seed 0 only, no held-out seeds;
 #   --heldout: only the held-out seeds)
 set -u
 cd "$(dirname "$0")/.."
@@ -26,6 +28,16 @@ run() {  # name, then bench/run.py arguments
     echo "[targets] $name"
     $PY bench/run.py "$@" --name "$name" --no-progress > "bench/logs/$name.log" 2>&1 || echo "[targets] $name FAILED (bench/logs/$name.log)"
 }
+if [ "${1:-}" = "--gap" ]; then
+    for s in $SEEDS; do
+        run "gap_fastrot_100f_seed$s" --synthetic --frames 100 --seed "$s" --yaw-rate-deg-s 180 --depth-gap 40+15 \
+            --method baseline voxfusion
+        run "gap_fastrot_100f_seed${s}_no_retry" --synthetic --frames 100 --seed "$s" --yaw-rate-deg-s 180 \
+            --depth-gap 40+15 --method voxfusion --vf-set tracking.retry_cost_factor=0
+    done
+    run "gap_synthetic_100f_seed1" --synthetic --frames 100 --seed 1 --depth-gap 40+15 --method baseline voxfusion
+    exit 0
+fi
 if [ "$ONLY_HELDOUT" = 0 ]; then
 for s in $SEEDS; do
     run "targets_synthetic_100f_seed$s" --synthetic --frames 100 --seed "$s" --method baseline voxfusion
