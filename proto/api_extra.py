@@ -25,6 +25,8 @@ class SessionStatusOut(SessionStatus):
     """Frames accepted but not yet handed to tracking (the bounded ingest queue)."""
     frames_lost: int = Field(0, ge=0)
     """Tracked frames whose tracking failed (their pose is the motion model's guess; they are not fused)."""
+    frames_retried: int = Field(0, ge=0)
+    """Frames after a gap that were tracked again from other start poses (their first start looked wrong)."""
     worker_pid: int | None = None
     """Process id of the session's engine worker on the server (``None``: none, or engines on threads)."""
     worker_node: str | None = None

@@ -156,6 +156,8 @@ _PER_SESSION = (
     ("voxfusion_session_frames_tracked_total", "counter", "Frames tracked.", "frames_tracked"),
     ("voxfusion_session_frames_mapped_total", "counter", "Frames fused into the map.", "frames_mapped"),
     ("voxfusion_session_frames_dropped_total", "counter", "Frames skipped by realtime tracking.", "frames_dropped"),
+    ("voxfusion_session_frames_retried_total", "counter", "Frames tracked again from other starts after a gap.",
+     "frames_retried"),
     ("voxfusion_session_keyframes", "gauge", "Keyframes.", "keyframes"),
     ("voxfusion_session_voxels", "gauge", "Allocated voxels.", "voxels"),
     ("voxfusion_session_fps", "gauge", "Frames tracked per second.", "fps"),

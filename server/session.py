@@ -338,7 +338,8 @@ class Session:
         return SessionStatusOut(
             id=self.id, name=self.name, mode=self.mode, state=self.state, created_at=self.created_at,
             frames_received=len(self.recorder), frames_tracked=st.frames_tracked, frames_mapped=st.frames_mapped,
-            frames_dropped=st.frames_dropped, frames_lost=st.frames_lost, keyframes=st.keyframes, voxels=st.voxels,
+            frames_dropped=st.frames_dropped, frames_lost=st.frames_lost, frames_retried=st.frames_retried,
+            keyframes=st.keyframes, voxels=st.voxels,
             fps=max(0.0, st.fps), latency_ms=st.latency_ms if math.isfinite(st.latency_ms) else None,
             last_error=self.last_error, map_version=st.map_version,
             replay_pending=replay_pending, frames_queued=queued, worker_pid=pid, worker_node=node,

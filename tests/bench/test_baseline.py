@@ -269,7 +269,9 @@ def test_run_py_with_a_depth_gap_runs_and_evaluates(tmp_path):
     from bench.run import main
 
     main(["--synthetic", "--frames", "6", "--width", "48", "--height", "36", "--depth-gap", "2+2", "--method",
-          "baseline", "--mesh-samples", "2000", "--out", str(tmp_path), "--no-progress"])
+          "voxfusion", "--vf-config", "cpu-small", "--vf-set", "mapping.first_frame_iters=5", "mapping.iters=2",
+          "mesh_res=2", "--mesh-samples", "2000", "--out", str(tmp_path), "--no-progress"])
     result = json.loads(next(tmp_path.glob("*_gap2+2.json")).read_text())
     assert result["capture"]["depth_gap"] == {"start": 2, "frames": 2}
-    assert result["methods"]["baseline"]["n_frames"] == 6 and result["methods"]["baseline"]["ate_aligned"] is not None
+    ours = result["methods"]["voxfusion"]
+    assert ours["n_frames"] == 6 and ours["extra"]["frames_lost"] == 2 and ours["ate_aligned"]["rmse_m"] < 0.05
