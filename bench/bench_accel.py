@@ -190,6 +190,44 @@ def run(device: str, smoke: bool, map_frames: int, iters: int, rounds: int,
             "variants": rows, "not_run": not_run}
 
 
+MAPPING_PATHS = {"eager (compacting; the CPU default)": {"mapping.compact_samples": True},
+                 "eager, fixed-shape samples (a GPU's default)": {"mapping.compact_samples": False},
+                 "mapping compile (fixed-shape samples)": {"mapping.compile": True}}
+"""``--mapping-paths``: the ways one mapping iteration can run, timed on one map in turn."""
+
+
+def mapping_paths(device: str, smoke: bool, map_frames: int, iters: int, rounds: int) -> dict:
+    """ms per mapping iteration of each :data:`MAPPING_PATHS` on one map, the paths alternated round by round (so a
+    drift of the machine's speed hits each alike), medians over ``rounds`` after one warm-up round each (the
+    compiled path's compilation). The same window sizes and sample counts for every path; the map keeps training."""
+    dev = torch.device(device)
+    overrides = [f"device={device}", *(SMOKE if smoke else [])]
+    cap = SyntheticCapture(SyntheticConfig(n_frames=map_frames, seed=1))
+    base = load_preset(preset_for(cap, device).preset, overrides, profile=cap.profile)
+    mapper = make_mapper(base, device=dev)
+    for f in cap.frames(0, map_frames):
+        mapper.integrate(frame_to_device(f, dev), f.T_world_cam)
+    configs = {name: apply_overrides(base, [f"{k}={v}" for k, v in opts.items()]).mapping
+               for name, opts in MAPPING_PATHS.items()}
+    newest = mapper.keyframes[-1]
+    warmup_s = {}
+    for name, cfg in configs.items():
+        mapper.config = cfg
+        t0 = time.perf_counter()
+        mapper.optimize(iters, newest=newest)
+        _sync(dev)
+        warmup_s[name] = time.perf_counter() - t0
+    times: dict[str, list[float]] = {name: [] for name in configs}
+    for _ in range(rounds):
+        for name, cfg in configs.items():
+            mapper.config = cfg
+            times[name].append(_median_ms(lambda: mapper.optimize(iters, newest=newest), 1, dev) / iters)
+    return {"device": str(dev), "preset": preset_for(cap, device).preset, "map_frames": map_frames,
+            "keyframes": len(mapper.keyframes), "voxels": mapper.voxels.n_voxels, "iters_per_round": iters,
+            "rounds": rounds, "ms_per_iter": {k: statistics.median(v) for k, v in times.items()},
+            "ms_per_iter_all": times, "first_round_s": warmup_s}
+
+
 def print_table(result: dict) -> None:
     rows = [{"variant": name, "map ms/it": r["mapping_ms_per_iter"], "x map": r.get("mapping_speedup"),
              "track ms/frame": r["tracking_ms_per_frame"], "x track": r.get("tracking_speedup"),
@@ -209,19 +247,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--iters", type=int, default=5, help="mapping iterations per timed round")
     p.add_argument("--rounds", type=int, default=None, help="timed rounds (median; default 7, smoke 2)")
     p.add_argument("--variants", nargs="*", choices=list(VARIANTS), default=None)
+    p.add_argument("--mapping-paths", action="store_true",
+                   help="instead: the mapping iteration's paths (compacting, fixed-shape, compiled) on one map, "
+                        "alternated round by round (default rounds 12; writes accel-<device>-mapping-paths.json)")
     p.add_argument("--out", type=Path, default=None,
                    help="JSON path (default bench/results/accel-<device>.json; smoke: not written unless given)")
     args = p.parse_args(argv)
     map_frames = args.map_frames or (3 if args.smoke else 31)
-    rounds = args.rounds or (2 if args.smoke else 7)
-    result = run(args.device, args.smoke, map_frames, 1 if args.smoke else args.iters, rounds, args.variants)
-    print_table(result)
     machine = machine_info()
+    if args.mapping_paths:
+        result = mapping_paths(args.device, args.smoke, map_frames, 1 if args.smoke else args.iters,
+                               args.rounds or (2 if args.smoke else 12))
+        rows = [{"path": k, "ms/iter (median)": v, "first round s": result["first_round_s"][k]}
+                for k, v in result["ms_per_iter"].items()]
+        print(format_table(rows, columns=list(rows[0]), float_fmt=".2f"))
+    else:
+        rounds = args.rounds or (2 if args.smoke else 7)
+        result = run(args.device, args.smoke, map_frames, 1 if args.smoke else args.iters, rounds, args.variants)
+        print_table(result)
     out = args.out
     if out is None and not args.smoke:
         cuda = machine.get("cuda_device") if args.device.startswith("cuda") else None
         slug = "".join(c if c.isalnum() else "-" for c in (cuda["name"] if cuda else "cpu").lower()).strip("-")
-        out = REPO_ROOT / "bench" / "results" / f"accel-{slug}.json"
+        out = REPO_ROOT / "bench" / "results" / f"accel-{slug}{'-mapping-paths' if args.mapping_paths else ''}.json"
     if out is not None:
         write_json(out, {"machine": machine, "command": " ".join(sys.argv), **result})
         print(f"wrote {out}")

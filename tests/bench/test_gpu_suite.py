@@ -209,3 +209,12 @@ def test_feed_plays_back_and_forth_with_new_stamps(unique: int):
     assert [f.timestamp_s for f in fed] == [round(k / 30, 6) for k in range(7)]
     source = [next(j for j, g in enumerate(frames) if g.depth_m is f.depth_m) for f in fed]
     assert source == ([0] * 7 if unique == 1 else [0, 1, 2, 1, 0, 1, 2])
+
+
+def test_bench_accel_times_each_mapping_path_on_one_map(tmp_path: Path):
+    out = tmp_path / "paths.json"
+    assert bench_accel.main(["--mapping-paths", "--smoke", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert set(result["ms_per_iter"]) == set(bench_accel.MAPPING_PATHS)
+    assert all(v > 0 for v in result["ms_per_iter"].values()) and result["machine"]["cpu_model"]
+    assert all(len(v) == result["rounds"] for v in result["ms_per_iter_all"].values())
