@@ -60,8 +60,8 @@ __all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem", "realtime_th
 log = logging.getLogger("voxfusion.slam")
 
 RETRY_MIN_GAIN = 0.5
-"""A retry after a gap (``tracking.retry_cost_factor``) replaces the first result only when its cost is below this
-fraction of the first's (or the first was lost): the wrong starts it recovers from cost 5-10 times a correct pose."""
+"""A retry after a gap (``tracking.retry_cost_factor``) replaces a first result that was not lost only when its cost
+is below this fraction of the first's: the wrong starts it recovers from cost 5-10 times a correct pose."""
 
 
 def realtime_thread_count(setting: int | None, current: int, usable_cores: int) -> int:
@@ -243,8 +243,12 @@ class SlamSystem:
         self._streams: dict[str, torch.cuda.Stream] = {}
         self._good_tail: deque[FrameRecord] = deque(maxlen=2)  # the last two frames not lost, for priors
         self._recent_costs: deque[float] = deque(maxlen=config.tracking.retry_window)  # tracked frames' costs
+        # seconds between consecutive tracked frames (none lost between them), the yardstick of a late frame
+        self._recent_intervals: deque[float] = deque(maxlen=config.tracking.retry_window)
+        self._retried_since_good = False  # a retry was made since the last tracked frame (one per gap)
         self.retried: list[int] = []
-        """Frame indices tracked a second time from the last tracked pose (``tracking.retry_cost_factor``)."""
+        """Frame indices that were tracked again from other start poses after a gap (``tracking.retry_cost_factor``;
+        every attempt, whether or not a retry's result was kept)."""
         self._first_good: FrameRecord | None = None  # the frame the map started with (world_axes)
         self._threads_before: tuple[int, int] | None = None  # (torch's threads, the workers') while they run
 
@@ -360,7 +364,7 @@ class SlamSystem:
                     if not prior_from_device and self._needs_retry(frame, res):
                         res = self._retry_from_other_starts(data, res, prior)
                 if not res.lost:
-                    self._recent_costs.append(res.loss)
+                    self._note_tracked(frame, res)
                 rec = FrameRecord(frame.index, frame.timestamp_s, res.T_world_cam, lost=res.lost, tracking=res,
                                   received_at=received_at)
         rec.data = None if rec.lost else data
@@ -382,17 +386,27 @@ class SlamSystem:
             self.on_pose(rec)
         return rec
 
+    def _note_tracked(self, frame: RGBDFrame, res: TrackResult) -> None:
+        """Remember a tracked (not lost) frame's cost, and the time since the previous tracked frame when no frame
+        was lost between them (what :meth:`_needs_retry` compares with)."""
+        self._recent_costs.append(res.loss)
+        good = self._good_tail
+        if good and not (self.records and self.records[-1].lost) and frame.timestamp_s > good[-1].timestamp_s:
+            self._recent_intervals.append(frame.timestamp_s - good[-1].timestamp_s)
+        self._retried_since_good = False
+
     def _needs_retry(self, frame: RGBDFrame, res: TrackResult) -> bool:
         """Whether a tracked frame looks like a wrong start after a gap (``tracking.retry_cost_factor``): it follows
-        lost frames or comes ``retry_gap`` frame intervals after the last tracked one, and it is lost or costs more
-        than ``retry_cost_factor`` times the recent tracked frames' median."""
+        lost frames, or comes ``retry_gap`` times the usual interval between tracked frames (their median) after the
+        last tracked one; it is lost or costs more than ``retry_cost_factor`` times the recent tracked frames'
+        median; and no retry was made since the last tracked frame (one per gap: a long lost streak, e.g. a view of
+        what was never mapped, is not searched again at every frame)."""
         cfg = self.config.tracking
-        if cfg.retry_cost_factor <= 0 or not self._good_tail:
+        if cfg.retry_cost_factor <= 0 or not self._good_tail or self._retried_since_good:
             return False
-        good = list(self._good_tail)
         after_lost = bool(self.records) and self.records[-1].lost
-        interval = good[-1].timestamp_s - good[-2].timestamp_s if len(good) > 1 else 0.0
-        late = interval > 0 and frame.timestamp_s - good[-1].timestamp_s >= cfg.retry_gap * interval
+        usual = float(np.median(self._recent_intervals)) if self._recent_intervals else 0.0
+        late = usual > 0 and frame.timestamp_s - self._good_tail[-1].timestamp_s >= cfg.retry_gap * usual
         return (after_lost or late) and (res.lost or not self._cost_is_usual(res.loss))
 
     def _cost_is_usual(self, cost: float) -> bool:
@@ -438,33 +452,32 @@ class SlamSystem:
 
     def _retry_from_other_starts(self, data: FrameData, first: TrackResult, prior: np.ndarray) -> TrackResult:
         """Track ``data`` again from the :meth:`_retry_starts` where its depth fits the map best
-        (:meth:`.tracking.Tracker.pose_costs`), best first, until one costs as usual; keep the result with the lowest
-        cost if it costs clearly less than the first (:data:`RETRY_MIN_GAIN`), a lost one only when every try is
-        (``tracking.retry_cost_factor``)."""
+        (:meth:`.tracking.Tracker.pose_costs`), best first, until one costs as usual (``tracking.retry_cost_factor``).
+        A retry replaces the first result only when it is not lost and, if the first was lost, costs as usual (a
+        lost frame is not fused, a wrong pose would be), else costs under :data:`RETRY_MIN_GAIN` times the first
+        (among poses that are all wrong, the lowest cost is no better a guess than the motion prior's); of those,
+        the lowest cost wins. Otherwise the first result stands, its pose the motion prior's."""
+        t0 = time.perf_counter()
         self.retried.append(first.frame_index)
-
-        def rank(r: TrackResult) -> tuple[bool, float]:
-            return r.lost, r.loss if np.isfinite(r.loss) else float("inf")
-
+        self._retried_since_good = True
         starts = self._retry_starts(prior)
         order = np.argsort(self.tracker.pose_costs(data, starts), kind="stable")
-        best, tries, iterations, time_ms = first, 0, first.iterations, first.time_ms
+        best, tries, iterations = first, 0, first.iterations
         for k in order[:self.config.tracking.retry_tracks]:
             again = self.tracker.track(data, starts[k], False)
             tries += 1
             iterations += again.iterations
-            time_ms += again.time_ms
-            # a retry replaces the first result only when clearly better: among poses that are all wrong (the view
-            # turned farther than the turns reach), the lowest cost is no better a guess than the motion prior's
-            clearly = first.lost or again.loss < RETRY_MIN_GAIN * first.loss
-            if clearly and rank(again) < rank(best):
+            acceptable = not again.lost and (self._cost_is_usual(again.loss) if first.lost
+                                             else again.loss < RETRY_MIN_GAIN * first.loss)
+            if acceptable and (best is first or again.loss < best.loss):
                 best = again
-            if not best.lost and self._cost_is_usual(best.loss):
+            if best is not first and self._cost_is_usual(best.loss):
                 break
-        log.info("frame %d tracked again from %d of %d other starts: cost %.3g%s -> %.3g%s", first.frame_index,
-                 tries, len(starts), first.loss, " (lost)" if first.lost else "", best.loss,
-                 " (lost)" if best.lost else "")
-        return dataclasses.replace(best, iterations=iterations, time_ms=time_ms)
+        log.info("frame %d tracked again from %d of %d other starts: cost %.3g%s -> %s", first.frame_index,
+                 tries, len(starts), first.loss, " (lost)" if first.lost else "",
+                 "kept the first" if best is first else f"{best.loss:.3g}")
+        return dataclasses.replace(best, iterations=iterations,
+                                   time_ms=first.time_ms + (time.perf_counter() - t0) * 1e3)
 
     @contextmanager
     def _tracking_threads(self) -> Iterator[None]:

@@ -210,28 +210,32 @@ class TrackingConfig:
     cold, more than a run of a few hundred frames saves (``python bench/bench_accel.py``, variant ``tracking
     compile``; ``make bench-gpu`` measures it on a GPU)."""
     retry_cost_factor: float = 3.0
-    """Recovery after a gap: a frame that comes after lost frames, or ``retry_gap`` or more frame intervals after the
-    last tracked one (dropped frames), and whose tracking is lost or costs (``TrackResult.loss``) more than this
-    times the median cost of the last ``retry_window`` tracked frames, is tracked again from other start poses: the
+    """Recovery after a gap: a frame that comes after lost frames, or ``retry_gap`` times the usual interval between
+    tracked frames or more after the last tracked one, and whose tracking is lost or costs (``TrackResult.loss``)
+    more than this times the median cost of the last ``retry_window`` tracked frames, is tracked again (once per
+    gap: not again before a frame is tracked) from other start poses: the
     last tracked pose turned about the camera's own vertical axis (pan) by 0, +-``retry_step_deg``, ... up to
     +-``retry_max_deg`` and about its horizontal axis (tilt) by +-``retry_step_deg``, each moved by the translation
     the motion prior extrapolated over the gap and by every offset of a grid in the camera's horizontal plane
     (``retry_reach_m``, ``retry_step_m``). They are ranked by how well the frame's depth
-    fits the map there (:meth:`Tracker.pose_costs`, one field query each), and the best ``retry_tracks`` are
-    tracked in that order until one costs no more than the factor; the result with the lowest cost is kept if it
-    costs under half the first's (:data:`.slam.RETRY_MIN_GAIN`; a lost one only if every try is). The motion prior
+    fits the map there (:meth:`Tracker.pose_costs`), and the best ``retry_tracks`` are tracked in that order until
+    one costs no more than the factor. A retry replaces the first result only when it is not lost and costs under
+    half the first's (:data:`.slam.RETRY_MIN_GAIN`), or, where the first was lost (and so not fused), costs as
+    usual; the lowest such cost wins. The motion prior
     extrapolates the last velocity over the gap, so a camera that turned, stopped or walked on while frames were
     missing starts far from where it is, and the solver can settle in a wrong minimum without being lost, after
     which the map grows a second copy of the scene: the synthetic room swinging at up to 180 deg/s with frames
     40-54 without depth (seed 1) tracked frame 55 13 cm / 22 deg off (cost 8.6) from the extrapolated prior,
-    0.7 cm / 0.1 deg (cost 1.05) from the last pose. Frames without a gap are never retried (a view turning into
-    unmapped space costs more too, and is not a wrong start), nor frames with a device prior
+    0.7 cm / 0.1 deg (cost 1.05) from the last pose. A frame is retried only after a gap (a view turning into
+    unmapped space costs more too, and is not a wrong start), and never with a device prior
     (``T_world_cam_device``: the device measured the motion over the gap). 0 turns it off."""
     retry_window: int = 10
     """Tracked frames whose median cost is the reference of ``retry_cost_factor`` (no retry before this many)."""
     retry_gap: float = 2.5
-    """A frame this many frame intervals (the last two tracked frames') or more after the last tracked one comes
-    after a gap (``retry_cost_factor``); so does a frame after lost ones."""
+    """A frame this many times the usual interval between tracked frames (the median of the last ``retry_window``
+    with no lost frame between them) or more after the last tracked one comes after a gap (``retry_cost_factor``);
+    so does a frame after lost ones. Realtime tracking that drops frames because it is slower than the feed has
+    long intervals as its usual ones."""
     retry_step_deg: float = 15.0
     retry_max_deg: float = 90.0
     """The turns ``retry_cost_factor`` tries: pan every ``retry_step_deg`` up to ``retry_max_deg`` either way."""
@@ -415,16 +419,19 @@ class Tracker:
     def pose_costs(self, frame: FrameData, poses: np.ndarray, n_points: int = 1024) -> np.ndarray:
         """How well ``frame``'s depth fits the map at each of ``poses [K, 4, 4]`` (camera-to-world), without moving
         them: the mean robust point-to-SDF cost of ``n_points`` of its points (the same points at every pose; a point
-        outside the map costs as much as one at the residual cap), as ``[K]`` float64, in the units of
-        :attr:`TrackResult.loss`'s map term. Ranks start poses for :meth:`track` (recovery after a gap), whatever
-        the tracking method; one field query per pose, no frame-to-frame term."""
-        if self.voxels is None or self.decoder is None:
+        outside the map costs as much as one at the residual cap), as ``[K]`` float64, in units of ``sdf_huber_m``
+        squared (the ``sdf`` method's map term). Ranks start poses for :meth:`track` (recovery after a gap), whatever
+        the tracking method; per pose one evaluation of the geometric tracker's map term (the field and its gradient
+        at the points; the gradient is not needed here), no frame-to-frame term. K of them in turn: ~1 ms each at
+        1024 points on a 2-core CPU; a batched cost-only query would serve a GPU better."""
+        voxels, decoder = self.voxels, self.decoder  # one snapshot for every pose (mapping may publish meanwhile)
+        if voxels is None or decoder is None:
             raise ConfigError("map", "tracker has no map snapshot yet (the first frame initialises the map)")
         cfg = self.config
         pts = sample_points(frame, n_points, self.generator)
         solver = SdfSolverConfig(huber_m=cfg.sdf_huber_m, max_residual_m=cfg.sdf_max_residual_m)
-        T = torch.as_tensor(np.asarray(poses, dtype=np.float64), device=self.voxels.device)
-        costs = [linearize(self.voxels, self.decoder, pts, T[k], solver)[0] for k in range(T.shape[0])]
+        T = torch.as_tensor(np.asarray(poses, dtype=np.float64), device=voxels.device)
+        costs = [linearize(voxels, decoder, pts, T[k], solver)[0] for k in range(T.shape[0])]
         return torch.stack(costs).cpu().numpy()
 
     # ------------------------------------------------------------------ sdf (geometric) tracker

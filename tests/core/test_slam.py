@@ -405,7 +405,10 @@ def test_a_wrong_start_after_a_gap_is_tracked_again_from_the_last_pose():
     off = [pose_error(r.current_pose(), f.T_world_cam)[0] for r, f in zip(slam.records[after_gap], frames[after_gap],
                                                                          strict=True)]
     assert min(off) > 0.05
+    before = [r.T_tracked for r in slam.records[:55]]
     slam, frames = _track_through_a_depth_gap(3.0)
+    # nothing changes before the gap: the retry never acts there (not even on the random draws)
+    assert all(np.array_equal(a, r.T_tracked) for a, r in zip(before, slam.records[:55], strict=True))
     assert [r.index for r in slam.records if r.lost] == list(range(40, 55))
     assert slam.retried == [55] and slam.stats().frames_retried == 1  # the frames before the gap were never retried
     on = [pose_error(r.current_pose(), f.T_world_cam)[0] for r, f in zip(slam.records[after_gap], frames[after_gap],
@@ -445,3 +448,35 @@ def test_pose_costs_rank_the_true_pose_first_and_rise_with_the_error(capture, ma
     costs = tracker.pose_costs(frame_to_device(f, "cpu"), poses)
     assert costs.shape == (4,) and np.all(np.isfinite(costs))
     assert list(np.argsort(costs)) == [0, 1, 2, 3] and costs[3] > 2 * costs[0]
+
+
+def test_a_retry_needs_a_gap_a_bad_result_and_none_since_the_last_tracked_frame():
+    """When a frame is retried (``tracking.retry_cost_factor``): after lost frames or late (2.5 usual intervals), and
+    lost or costing 3 times the recent median; once per gap; never for the frames of a steady run."""
+    from voxfusion.core.slam import FrameRecord
+    from voxfusion.core.tracking import TrackResult
+
+    slam = SlamSystem(load_preset("cpu", []))
+    dt = 1 / 30
+    slam._good_tail.extend([FrameRecord(8, 8 * dt, np.eye(4)), FrameRecord(9, 9 * dt, np.eye(4))])
+    slam._recent_intervals.extend([dt] * 10)
+    slam._recent_costs.extend([1.0] * 10)
+
+    def frame(index: int):  # noqa: ANN202
+        return SyntheticCapture(SyntheticConfig(n_frames=1, width=16, height=12))[0].with_(
+            index=index, timestamp_s=index * dt)
+
+    def result(cost: float, lost: bool = False) -> TrackResult:
+        return TrackResult(0, 0.0, np.eye(4), np.eye(4), cost, 1, 100, 0.0, lost, "", 1.0)
+
+    assert not slam._needs_retry(frame(10), result(9.0))  # on time: a costly view (new ground) is no wrong start
+    assert not slam._needs_retry(frame(12), result(2.9))  # late but as usual
+    assert slam._needs_retry(frame(12), result(3.1))  # late (3 intervals) and costly
+    assert slam._needs_retry(frame(12), result(1.0, lost=True))  # late and lost
+    slam.records.append(FrameRecord(10, 10 * dt, np.eye(4), lost=True))
+    assert slam._needs_retry(frame(11), result(5.0))  # after a lost frame, on time
+    slam._retried_since_good = True
+    assert not slam._needs_retry(frame(12), result(5.0))  # once per gap
+    slam.config = load_preset("cpu", ["tracking.retry_cost_factor=0"])
+    slam._retried_since_good = False
+    assert not slam._needs_retry(frame(12), result(5.0))  # 0 turns it off
