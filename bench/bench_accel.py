@@ -203,7 +203,8 @@ def mapping_paths(device: str, smoke: bool, map_frames: int, iters: int, rounds:
     dev = torch.device(device)
     overrides = [f"device={device}", *(SMOKE if smoke else [])]
     cap = SyntheticCapture(SyntheticConfig(n_frames=map_frames, seed=1))
-    base = load_preset(preset_for(cap, device).preset, overrides, profile=cap.profile)
+    preset = preset_for(cap, device).preset
+    base = load_preset(preset, overrides, profile=cap.profile)
     mapper = make_mapper(base, device=dev)
     for f in cap.frames(0, map_frames):
         mapper.integrate(frame_to_device(f, dev), f.T_world_cam)
@@ -222,7 +223,7 @@ def mapping_paths(device: str, smoke: bool, map_frames: int, iters: int, rounds:
         for name, cfg in configs.items():
             mapper.config = cfg
             times[name].append(_median_ms(lambda: mapper.optimize(iters, newest=newest), 1, dev) / iters)
-    return {"device": str(dev), "preset": preset_for(cap, device).preset, "map_frames": map_frames,
+    return {"device": str(dev), "preset": preset, "map_frames": map_frames,
             "keyframes": len(mapper.keyframes), "voxels": mapper.voxels.n_voxels, "iters_per_round": iters,
             "rounds": rounds, "ms_per_iter": {k: statistics.median(v) for k, v in times.items()},
             "ms_per_iter_all": times, "first_round_s": warmup_s}

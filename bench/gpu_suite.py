@@ -601,8 +601,8 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
             with_render = key == "synthetic" and "render" not in args.skip
             if not may_start(f"realtime/{key}", *(["render_mesh"] if with_render else [])):
                 continue
-            out = run(f"realtime/{key}", lambda key=key, spec=spec, with_render=with_render:
-                      _realtime_section(spec, (frames, name, cap), sizes, memory, results, key, with_render))
+            out = run(f"realtime/{key}", lambda spec=spec, with_render=with_render:
+                      _realtime_section(spec, (frames, name, cap), sizes, memory, results, with_render))
             if out is not None:
                 results["realtime"][key] = out
             done()
@@ -632,13 +632,14 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
 
 
 def _finish(results: dict, t_start: float, iter_preset: str) -> dict:
+    """``results`` with the suite's elapsed seconds and the target verdicts brought up to date."""
     results["elapsed_s"] = time.perf_counter() - t_start
     results["targets"] = target_verdicts(results, iter_preset)
     return results
 
 
 def _realtime_section(spec: SessionSpec, synthetic: tuple[list[RGBDFrame], str, object], sizes: SuiteSizes,
-                      memory: dict, results: dict, key: str, with_render: bool) -> dict:
+                      memory: dict, results: dict, with_render: bool) -> dict:
     """One realtime session of the ``realtime`` section (and, with ``with_render``, the ``render_mesh`` section on
     its final map): the session's row, with the seconds its compile warm-up took and the graphs compiled while it
     was fed (0 when the warm-up covered them all)."""

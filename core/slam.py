@@ -44,6 +44,7 @@ from .frame_checks import MIN_INIT_VALID_PIXELS, intrinsics_problem, usable_pose
 from .framedata import FrameData, frame_to_device
 from .geometry import invert_pose, nearest_rigid, scale_motion
 from .host_memory import retain_freed_memory
+from .lie import so3_exp
 from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper, publish_keyframe_poses
 from .mesh import extract_map_mesh
 from .mesh.frame import WorldAxes, camera_up_forward
@@ -415,39 +416,31 @@ class SlamSystem:
         costs = self._recent_costs
         return len(costs) < costs.maxlen or cost <= self.config.tracking.retry_cost_factor * float(np.median(costs))
 
-    def _retry_turns(self) -> list[np.ndarray]:
-        """``[4, 4]`` rotations about the camera's own centre to try after a gap, nearest first: pan (about the
-        camera's y axis) by 0, +-step, ... +-max degrees, then tilt (x axis) by +-step."""
+    def _retry_turns(self) -> np.ndarray:
+        """``[T, 3, 3]`` rotations about the camera's own centre to try after a gap, nearest first: pan (about the
+        camera's y axis; positive turns the optical axis towards +x) by 0, +-step, ... +-max degrees, then tilt
+        (x axis) by +-step."""
         cfg = self.config.tracking
-        pans = [0.0]
-        a = cfg.retry_step_deg
-        while a <= cfg.retry_max_deg + 1e-9:
-            pans += [a, -a]
-            a += cfg.retry_step_deg
-        turns = [(1, p) for p in pans] + [(0, cfg.retry_step_deg), (0, -cfg.retry_step_deg)]
-        out = []
-        for axis, deg in turns:
-            c, s_ = np.cos(np.radians(deg)), np.sin(np.radians(deg))
-            R = np.eye(4)
-            i, j = [(1, 2), (0, 2)][axis]  # the plane the rotation turns: y-z for the x axis, x-z for the y axis
-            R[i, i] = R[j, j] = c
-            R[i, j], R[j, i] = (-s_, s_) if axis == 0 else (s_, -s_)
-            out.append(R)
-        return out
+        step = cfg.retry_step_deg
+        n = int(np.floor(cfg.retry_max_deg / step + 1e-9))
+        pans = [0.0] + [sign * k * step for k in range(1, n + 1) for sign in (1.0, -1.0)]
+        axis_angles = [(0.0, p, 0.0) for p in pans] + [(step, 0.0, 0.0), (-step, 0.0, 0.0)]
+        return so3_exp(torch.tensor(np.radians(axis_angles), dtype=torch.float64)).numpy()
 
     def _retry_starts(self, prior: np.ndarray) -> np.ndarray:
         """``[K, 4, 4]`` start poses to try after a gap: the last tracked pose turned by each of :meth:`_retry_turns`
-        and moved, in its camera's frame, by the translation the motion prior (``prior``) extrapolated and by every
+        and moved, in its camera's frame, by the translation the motion prior (``prior``) extrapolated or by an
         offset of a horizontal grid (camera x and z, every ``retry_step_m`` up to ``retry_reach_m`` either way)."""
         cfg = self.config.tracking
         last = self._good_tail[-1].current_pose()
         t_prior = invert_pose(last)[:3, :3] @ (prior[:3, 3] - last[:3, 3])  # the prior's translation, camera frame
         n = int(round(cfg.retry_reach_m / cfg.retry_step_m))
         grid = np.arange(-n, n + 1) * cfg.retry_step_m
-        moves = [t_prior] + [np.array([x, 0.0, z]) for x in grid for z in grid]
-        turns = np.stack(self._retry_turns())  # [T, 4, 4]
-        starts = np.repeat(turns[None], len(moves), axis=0)  # [M, T, 4, 4]
-        starts[:, :, :3, 3] = np.asarray(moves)[:, None, :]
+        moves = np.array([t_prior] + [[x, 0.0, z] for x in grid for z in grid])  # [M, 3]
+        turns = self._retry_turns()  # [T, 3, 3]
+        starts = np.tile(np.eye(4), (len(moves), len(turns), 1, 1))  # [M, T, 4, 4]
+        starts[:, :, :3, :3] = turns[None]
+        starts[:, :, :3, 3] = moves[:, None, :]
         return last @ starts.reshape(-1, 4, 4)
 
     def _retry_from_other_starts(self, data: FrameData, first: TrackResult, prior: np.ndarray) -> TrackResult:

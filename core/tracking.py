@@ -213,21 +213,21 @@ class TrackingConfig:
     """Recovery after a gap: a frame that comes after lost frames, or ``retry_gap`` times the usual interval between
     tracked frames or more after the last tracked one, and whose tracking is lost or costs (``TrackResult.loss``)
     more than this times the median cost of the last ``retry_window`` tracked frames, is tracked again (once per
-    gap: not again before a frame is tracked) from other start poses: the
-    last tracked pose turned about the camera's own vertical axis (pan) by 0, +-``retry_step_deg``, ... up to
-    +-``retry_max_deg`` and about its horizontal axis (tilt) by +-``retry_step_deg``, each moved by the translation
-    the motion prior extrapolated over the gap and by every offset of a grid in the camera's horizontal plane
-    (``retry_reach_m``, ``retry_step_m``). They are ranked by how well the frame's depth
-    fits the map there (:meth:`Tracker.pose_costs`), and the best ``retry_tracks`` are tracked in that order until
-    one costs no more than the factor. A retry replaces the first result only when it is not lost and costs under
-    half the first's (:data:`.slam.RETRY_MIN_GAIN`), or, where the first was lost (and so not fused), costs as
-    usual; the lowest such cost wins. The motion prior
-    extrapolates the last velocity over the gap, so a camera that turned, stopped or walked on while frames were
-    missing starts far from where it is, and the solver can settle in a wrong minimum without being lost, after
-    which the map grows a second copy of the scene: the synthetic room swinging at up to 180 deg/s with frames
-    40-54 without depth (seed 1) tracked frame 55 13 cm / 22 deg off (cost 8.6) from the extrapolated prior,
-    0.7 cm / 0.1 deg (cost 1.05) from the last pose. A frame is retried only after a gap (a view turning into
-    unmapped space costs more too, and is not a wrong start), and never with a device prior
+    gap: not again before a frame is tracked) from other start poses: the last tracked pose turned about the
+    camera's own vertical axis (pan) by 0, +-``retry_step_deg``, ... up to +-``retry_max_deg`` and about its
+    horizontal axis (tilt) by +-``retry_step_deg``, each moved by the translation the motion prior extrapolated over
+    the gap or by an offset of a grid in the camera's horizontal plane (``retry_reach_m``, ``retry_step_m``). They
+    are ranked by how well the frame's depth fits the map there (:meth:`Tracker.pose_costs`), and the best
+    ``retry_tracks`` are tracked in that order until one costs no more than the factor. A retry replaces the first
+    result only when it is not lost and costs under half the first's (:data:`.slam.RETRY_MIN_GAIN`), or, where the
+    first was lost (and so not fused), costs as usual; the lowest such cost wins.
+
+    The motion prior extrapolates the last velocity over the gap, so a camera that turned, stopped or walked on
+    while frames were missing starts far from where it is, and the solver can settle in a wrong minimum without
+    being lost, after which the map grows a second copy of the scene: the synthetic room swinging at up to 180
+    deg/s with frames 40-54 without depth (seed 1) tracked frame 55 13 cm / 22 deg off (cost 8.6) from the
+    extrapolated prior, 0.7 cm / 0.1 deg (cost 1.05) from the last pose. A frame is retried only after a gap (a
+    view turning into unmapped space costs more too, and is not a wrong start), and never with a device prior
     (``T_world_cam_device``: the device measured the motion over the gap). 0 turns it off."""
     retry_window: int = 10
     """Tracked frames whose median cost is the reference of ``retry_cost_factor`` (no retry before this many)."""

@@ -419,16 +419,17 @@ def test_a_wrong_start_after_a_gap_is_tracked_again_from_the_last_pose():
 def test_retry_turns_are_rotations_about_the_camera_nearest_first():
     cfg = load_preset("cpu", ["tracking.retry_step_deg=30", "tracking.retry_max_deg=60"])
     turns = SlamSystem(cfg)._retry_turns()
-    angles = [np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1))) for T in turns]
-    np.testing.assert_allclose(angles, [0, 30, 30, 60, 60, 30, 30], atol=1e-9)
-    for T in turns:
-        np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
-        assert np.all(T[:3, 3] == 0) and np.isclose(np.linalg.det(T[:3, :3]), 1.0)
+    assert turns.shape == (7, 3, 3)
+    angles = [np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) for R in turns]
+    np.testing.assert_allclose(angles, [0, 30, 30, 60, 60, 30, 30], atol=1e-6)
+    for R in turns:
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert np.isclose(np.linalg.det(R), 1.0)
     # pans keep the camera's y axis (its image vertical), tilts its x axis
-    for T in turns[:5]:
-        np.testing.assert_allclose(T[:3, 1], [0, 1, 0], atol=1e-12)
-    for T in turns[5:]:
-        np.testing.assert_allclose(T[:3, 0], [1, 0, 0], atol=1e-12)
+    for R in turns[:5]:
+        np.testing.assert_allclose(R[:, 1], [0, 1, 0], atol=1e-12)
+    for R in turns[5:]:
+        np.testing.assert_allclose(R[:, 0], [1, 0, 0], atol=1e-12)
     # a positive pan turns the optical axis (+z) towards +x
     assert turns[1][0, 2] > 0
     with pytest.raises(ConfigError):
