@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -60,7 +61,8 @@ log = logging.getLogger("voxfusion.tracking")
 
 __all__ = ["SdfSolverConfig", "SdfPoints", "SdfSolution", "DepthReference", "GrayImages", "depth_reference",
            "frame_residuals", "photometric_residuals", "gray_images", "smoothed_gray", "gaussian_blur",
-           "separable_filter", "sample_points", "solve_pose", "linearize", "solve_spd", "solve_spd_elimination"]
+           "separable_filter", "sample_points", "solve_pose", "linearize",
+           "linearize_terms", "pose_terms", "PoseTerms", "solve_spd", "solve_spd_elimination"]
 
 _GRAY = (0.299, 0.587, 0.114)
 
@@ -396,48 +398,90 @@ def solve_spd_elimination(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return M[:, n]
 
 
-def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Tensor, cfg: SdfSolverConfig,
-              reference: DepthReference | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
-                                                                torch.Tensor, torch.Tensor]:
-    """Residuals and normal equations at pose ``T [4, 4]`` (float64), with the frame-to-frame term against
-    ``reference`` when one is given and ``cfg.w_frame > 0``.
+class PoseTerms(NamedTuple):
+    """What :func:`linearize_terms` computes at one pose that does not depend on the points' gray levels, so
+    that two solver stages on the same points and the same reference depth (the blurred photometric stage and
+    the finest) share it at the pose where one ends and the next begins.
 
-    Returns ``(cost, H [6, 6], b [6], r [N], ok [N])``: mean robust cost (in units of ``huber_m^2``),
-    ``H = J^T W J`` and ``b = J^T W r`` in float64 (same units), the SDF residuals (metres) and the
-    mask of points inside the map and below ``max_residual_m`` (the lost-frame statistics use the SDF term
-    only). No host synchronisation.
-    """
+    ``r [N]`` SDF residuals (metres), ``grads [N, 3]`` their world gradients, ``ok [N]`` the points inside the
+    map, finite and below ``max_residual_m``; with the colour term (else None) the colour head's gray level
+    ``gray_pred [N]`` and its world gradient ``g_col [N, 3]``; with the frame-to-frame term (else None) its
+    residuals ``rf [N]`` (metres), world gradients ``gf [N, 3]`` and usable pairs ``okf [N]``."""
+
+    r: torch.Tensor
+    grads: torch.Tensor
+    ok: torch.Tensor
+    gray_pred: torch.Tensor | None
+    g_col: torch.Tensor | None
+    rf: torch.Tensor | None
+    gf: torch.Tensor | None
+    okf: torch.Tensor | None
+
+    def where(self, cond: torch.Tensor, other: PoseTerms) -> PoseTerms:
+        """These terms where the 0-dim ``cond`` holds, else ``other``'s (on the device, no read-back)."""
+        return PoseTerms(*(a if a is None else torch.where(cond, a, b) for a, b in zip(self, other, strict=True)))
+
+
+def pose_terms(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Tensor, cfg: SdfSolverConfig,
+               reference: DepthReference | None = None) -> PoseTerms:
+    """The field's residuals at pose ``T [4, 4]`` (float64) and, with ``reference`` and ``cfg.w_frame > 0``,
+    the frame-to-frame term's (:class:`PoseTerms`). No host synchronisation."""
     dtype = voxels.embeddings.dtype
-    R = T[:3, :3].to(dtype)
     p_cam = pts.p_cam.to(dtype)
-    x = (p_cam @ R.T + T[:3, 3].to(dtype)).detach()
+    x = (p_cam @ T[:3, :3].to(dtype).T + T[:3, 3].to(dtype)).detach()
     idx = voxels.lookup_voxels(x)
     inside = idx >= 0
     idx = idx.clamp(min=0)
-    use_color = cfg.w_color > 0 and pts.gray is not None and decoder.color_net is not None
-    if use_color:  # the colour head's gradient too: through autograd
+    gray_pred = g_col = None
+    if _uses_color(decoder, pts, cfg):  # the colour head's gradient too: through autograd
         with torch.enable_grad():
             x.requires_grad_(True)
             loc = local_coords(voxels, x, idx)
             sdf, rgb = decoder(interpolate_unchecked(voxels, x, idx, loc), loc, with_color=True)
             grads = torch.autograd.grad(sdf.sum(), x, retain_graph=True)[0]
-            gray_pred = rgb @ torch.tensor(_GRAY, dtype=rgb.dtype, device=rgb.device)
-            g_col = torch.autograd.grad(gray_pred.sum(), x)[0]
+            gray = rgb @ torch.tensor(_GRAY, dtype=rgb.dtype, device=rgb.device)
+            g_col = torch.autograd.grad(gray.sum(), x)[0]
+        gray_pred = gray.detach()
     else:  # geometry only: the field's SDF and spatial gradient in one pass, no autograd graph
         sdf, grads = sdf_with_gradient(voxels, decoder, x, idx)
     r = sdf.detach()
     ok = inside & torch.isfinite(r) & (r.abs() < cfg.max_residual_m) & torch.isfinite(grads).all(-1)
-    # residual blocks (value, world gradient, Huber scale, cost cap, valid), all in metres: the SDF, then the
-    # optional photometric and frame-to-frame terms, weighted; stacked so one pass builds H and b
-    blocks = [(r, grads, cfg.huber_m, cfg.max_residual_m, ok)]
-    if use_color:
-        rc = (gray_pred.detach() - pts.gray.to(dtype)) * cfg.w_color
-        blocks.append((rc, g_col.detach() * cfg.w_color, cfg.huber_color * cfg.w_color, cfg.max_residual_m,
-                       ok & torch.isfinite(rc)))
+    rf = gf = okf = None
     if reference is not None and cfg.w_frame > 0:
         rf, gf, okf = frame_residuals(reference, p_cam, T, cfg.frame_max_m)
+    return PoseTerms(r, grads, ok, gray_pred, g_col, rf, gf, okf)
+
+
+def _uses_color(decoder: SDFDecoder, pts: SdfPoints, cfg: SdfSolverConfig) -> bool:
+    """Whether :func:`linearize` has the colour-head term (``w_color``, points with gray levels, a colour head)."""
+    return cfg.w_color > 0 and pts.gray is not None and decoder.color_net is not None
+
+
+def linearize_terms(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Tensor, cfg: SdfSolverConfig,
+                    reference: DepthReference | None = None, terms: PoseTerms | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, PoseTerms]:
+    """:func:`linearize`, returning ``(cost, H, b, terms)``: ``terms`` (:class:`PoseTerms`) in place of its
+    ``r`` and ``ok``. Given ``terms`` (computed by :func:`pose_terms` at this ``T`` for points at these
+    positions, this reference's depth and these ``max_residual_m``, ``w_color``, ``w_frame`` and
+    ``frame_max_m``), it skips the field query and the frame-to-frame term; only the terms that compare gray
+    levels are evaluated. No host synchronisation."""
+    if terms is None:
+        terms = pose_terms(voxels, decoder, pts, T, cfg, reference)
+    dtype = voxels.embeddings.dtype
+    R = T[:3, :3].to(dtype)
+    p_cam = pts.p_cam.to(dtype)
+    r, ok = terms.r, terms.ok
+    # residual blocks (value, world gradient, Huber scale, cost cap, valid), all in metres: the SDF, then the
+    # optional photometric and frame-to-frame terms, weighted; stacked so one pass builds H and b
+    blocks = [(r, terms.grads, cfg.huber_m, cfg.max_residual_m, ok)]
+    if terms.gray_pred is not None and terms.g_col is not None and pts.gray is not None:
+        rc = (terms.gray_pred - pts.gray.to(dtype)) * cfg.w_color
+        blocks.append((rc, terms.g_col * cfg.w_color, cfg.huber_color * cfg.w_color, cfg.max_residual_m,
+                       ok & torch.isfinite(rc)))
+    if terms.rf is not None and terms.gf is not None and terms.okf is not None:
         w = cfg.w_frame
-        blocks.append((rf * w, gf * w, cfg.huber_m * w, cfg.frame_max_m * w, okf & torch.isfinite(rf)))
+        blocks.append((terms.rf * w, terms.gf * w, cfg.huber_m * w, cfg.frame_max_m * w,
+                       terms.okf & torch.isfinite(terms.rf)))
     use_photo = reference is not None and reference.gray is not None and cfg.w_photo > 0 and pts.gray is not None
     if use_photo:
         rp, gp, okp = photometric_residuals(reference, p_cam, pts.gray, T, cfg.frame_max_m)
@@ -458,13 +502,28 @@ def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Te
     # an invalid residual costs as much as one at its cap: leaving the map (or the reference) never pays
     cost = torch.where(valid, _huber_cost(rs, k * scale), _huber_cost(cap * scale, k * scale))
     Jw = J * wgt[:, None]
-    return cost.sum() / n, Jw.T @ J / n, Jw.T @ rs / n, r, ok
+    return cost.sum() / n, Jw.T @ J / n, Jw.T @ rs / n, terms
 
 
-COMPILED_LINEARIZE = CompiledFunction(linearize, "tracking.compile", log)
-""":func:`linearize` compiled (``tracking.compile``): one graph per solver stage, shapes dynamic (the map
-grows between frames); tested against :func:`linearize` itself. A call at 4096 points with every term took
-3.2 ms against 6.8 eager on the 2-core AMD EPYC (one thread)."""
+def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Tensor, cfg: SdfSolverConfig,
+              reference: DepthReference | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor,
+                                                                torch.Tensor, torch.Tensor]:
+    """Residuals and normal equations at pose ``T [4, 4]`` (float64), with the frame-to-frame term against
+    ``reference`` when one is given and ``cfg.w_frame > 0``.
+
+    Returns ``(cost, H [6, 6], b [6], r [N], ok [N])``: mean robust cost (in units of ``huber_m^2``),
+    ``H = J^T W J`` and ``b = J^T W r`` in float64 (same units), the SDF residuals (metres) and the
+    mask of points inside the map and below ``max_residual_m`` (the lost-frame statistics use the SDF term
+    only). No host synchronisation.
+    """
+    cost, H, b, terms = linearize_terms(voxels, decoder, pts, T, cfg, reference)
+    return cost, H, b, terms.r, terms.ok
+
+
+COMPILED_LINEARIZE = CompiledFunction(linearize_terms, "tracking.compile", log)
+""":func:`linearize_terms` compiled (``tracking.compile``; always called without ``terms``): one graph per solver
+stage, shapes dynamic (the map grows between frames); tested against :func:`linearize` itself. A call at 4096
+points with every term took 3.2 ms against 6.8 eager on the 2-core AMD EPYC (one thread)."""
 
 
 def _stages(levels: list[SdfPoints], cfg: SdfSolverConfig, reference: DepthReference | None
@@ -486,6 +545,19 @@ def _stages(levels: list[SdfPoints], cfg: SdfSolverConfig, reference: DepthRefer
     return stages
 
 
+def _shares_pose_terms(a: tuple[SdfPoints, SdfSolverConfig, DepthReference | None],
+                       b: tuple[SdfPoints, SdfSolverConfig, DepthReference | None]) -> bool:
+    """Whether two solver stages ``(points, options, reference)`` have the same :class:`PoseTerms` at a pose:
+    the same point positions (the same tensor), both with or without gray levels, the same reference depth
+    (the same tensor, or none) and the options those terms depend on."""
+    (pa, ca, ra), (pb, cb, rb) = a, b
+    same_ref = (ra is None and rb is None) or (ra is not None and rb is not None
+                                               and ra.depth_padded is rb.depth_padded)
+    return (pa.p_cam is pb.p_cam and (pa.gray is None) == (pb.gray is None) and same_ref
+            and (ca.max_residual_m, ca.w_color, ca.w_frame, ca.frame_max_m)
+            == (cb.max_residual_m, cb.w_color, cb.w_frame, cb.frame_max_m))
+
+
 def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T_init: torch.Tensor,
                cfg: SdfSolverConfig, reference: DepthReference | None = None) -> SdfSolution:
     """Levenberg-Marquardt from ``T_init [4, 4]`` float64 over ``levels`` (coarse first; the stages of
@@ -501,21 +573,27 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
     cost_best = torch.zeros((), dtype=torch.float64, device=dev)
     iterations = 0
     stages = _stages(levels, cfg, reference)
-    lin = COMPILED_LINEARIZE if cfg.compile else linearize
+    lin = COMPILED_LINEARIZE if cfg.compile else linearize_terms
+    shared: tuple[tuple[SdfPoints, SdfSolverConfig, DepthReference | None], PoseTerms] | None = None
     for stage, (pts, lcfg, lref) in enumerate(stages):
         finest = stage == len(stages) - 1
         tol = cfg.converge_tol if finest or cfg.coarse_converge_tol is None else cfg.coarse_converge_tol
 
         # the prior's weight is per point of the data term's mean, so it does not depend on N
-        def evaluate(T: torch.Tensor, xi: torch.Tensor, pts: SdfPoints = pts, lcfg: SdfSolverConfig = lcfg,
-                     lref: DepthReference | None = lref) -> tuple[torch.Tensor, ...]:
-            cost, H, b, r, ok = lin(voxels, decoder, pts, T, lcfg, lref)
+        def evaluate(T: torch.Tensor, xi: torch.Tensor, terms: PoseTerms | None = None, pts: SdfPoints = pts,
+                     lcfg: SdfSolverConfig = lcfg, lref: DepthReference | None = lref
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, PoseTerms]:
+            cost, H, b, terms = (lin(voxels, decoder, pts, T, lcfg, lref) if terms is None
+                                 else linearize_terms(voxels, decoder, pts, T, lcfg, lref, terms))
             H = H + torch.diag(info) / n_points
             b = b + info * xi / n_points
             cost = cost + 0.5 * (info * xi * xi).sum() / n_points
-            return cost, H, b, r, ok
+            return cost, H, b, terms
 
-        cost_best, H_best, b_best, r, ok = evaluate(T_best, xi_acc)
+        # where the previous stage ended, its field and frame-to-frame terms are this one's when both have the
+        # same points and reference depth (the blurred stage, then the finest): only the gray levels differ
+        reuse = shared[1] if shared is not None and _shares_pose_terms(shared[0], (pts, lcfg, lref)) else None
+        cost_best, H_best, b_best, terms_best = evaluate(T_best, xi_acc, reuse)
         lam = torch.full((), cfg.lambda_init, dtype=torch.float64, device=dev)
         for it in range(1, cfg.iters + 1):
             A = H_best + lam * (torch.diag(torch.diagonal(H_best)) + 1e-9 * eye)
@@ -527,17 +605,18 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
                 break
             T_c = perturb_right(T_best, delta)
             xi_c = xi_acc + delta
-            cost_c, H_c, b_c, r_c, ok_c = evaluate(T_c, xi_c)
+            cost_c, H_c, b_c, terms_c = evaluate(T_c, xi_c)
             better = cost_c < cost_best
             T_best = torch.where(better, T_c, T_best)
             xi_acc = torch.where(better, xi_c, xi_acc)
             cost_best = torch.where(better, cost_c, cost_best)
             H_best = torch.where(better, H_c, H_best)
             b_best = torch.where(better, b_c, b_best)
-            r = torch.where(better, r_c, r)
-            ok = torch.where(better, ok_c, ok)
+            terms_best = terms_c.where(better, terms_best)
             lam = torch.where(better, (lam * 0.3).clamp(min=1e-7), lam * 5.0)
             iterations += 1
+        shared = ((pts, lcfg, lref), terms_best)
+        r, ok = terms_best.r, terms_best.ok
     assert r is not None and ok is not None
     a = r.abs()
     inlier = (ok & (a < cfg.inlier_m)).to(torch.float64).mean()

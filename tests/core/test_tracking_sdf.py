@@ -296,9 +296,10 @@ def test_blurred_photometric_stage_widens_the_basin(monkeypatch):
     prev, cur = wall_frame(np.zeros(3), **kw), wall_frame(np.array([0.04, -0.024, 0.0]), **kw)
     mapper = make_mapper(cfg)
     mapper.integrate(frame_to_device(prev, "cpu"), prev.T_world_cam)
-    calls = []  # field evaluations: what Tracker.sdf_stages tells the benchmarks to expect
-    real_linearize = tracking_sdf.linearize
-    monkeypatch.setattr(tracking_sdf, "linearize", lambda *a, **k: calls.append(1) or real_linearize(*a, **k))
+    calls, fields = [], []  # evaluations (what Tracker.sdf_stages tells the benchmarks to expect), field queries
+    real_linearize, real_terms = tracking_sdf.linearize_terms, tracking_sdf.pose_terms
+    monkeypatch.setattr(tracking_sdf, "linearize_terms", lambda *a, **k: calls.append(1) or real_linearize(*a, **k))
+    monkeypatch.setattr(tracking_sdf, "pose_terms", lambda *a, **k: fields.append(1) or real_terms(*a, **k))
     errors = {}
     for w in (0.0, 0.3):
         tr = tracker_for(cfg, mapper, method="sdf", sdf_w_photo=0.1, sdf_w_photo_blur=w)
@@ -306,8 +307,11 @@ def test_blurred_photometric_stage_widens_the_basin(monkeypatch):
         assert (tr._reference.gray_blurred is None) == (w == 0)
         assert tr.sdf_stages() == tr.config.sdf_levels + (w > 0)
         calls.clear()
+        fields.clear()
         res = tr.track(frame_to_device(cur, "cpu"), prev.T_world_cam)
         assert len(calls) == res.iterations + tr.sdf_stages()
+        # the finest stage starts where the blurred one ended, on its points: it reuses that field query
+        assert len(fields) == len(calls) - (w > 0)
         assert not res.lost, res.reason
         errors[w] = pose_error(res.T_world_cam, cur.T_world_cam)
     assert errors[0.0][0] > 0.02, errors
@@ -526,3 +530,37 @@ def test_compiled_linearize_matches_linearize_as_the_map_grows(room):
         torch.testing.assert_close(got[3], r, rtol=1e-4, atol=1e-6)
         assert torch.equal(got[4], ok)
     assert grown.n_voxels > mapper.voxels.n_voxels
+
+
+def test_stages_on_the_same_points_share_the_field_query(room, monkeypatch):
+    """The blurred photometric stage and the finest level evaluate the same points against the same reference
+    depth: at the pose where one ends the other starts from its field and frame-to-frame terms instead of
+    querying the field again, and the solution is the one without sharing, bit for bit."""
+    cap, cfg, mapper = room
+    frame = frame_to_device(cap[6], "cpu")
+    tr = tracker_for(cfg, mapper, method="sdf", sdf_points=1024, sdf_w_photo=0.1, sdf_w_photo_blur=0.3)
+    tr.remember(frame_to_device(cap[5], "cpu"), cap[5].T_world_cam)
+    images = tr._gray_images(frame)
+    finest = sample_points(frame, 1024, torch.Generator().manual_seed(3), with_gray=True, blurred=images.blurred)
+    levels = [finest.prefix(256), finest]
+    scfg = SdfSolverConfig(iters=4, w_frame=1.0, w_photo=0.1, w_photo_blurred=0.3)
+    T0 = torch.as_tensor(perturb(cap[6].T_world_cam, 0.3))
+    fields = []
+    real_terms = tracking_sdf.pose_terms
+    monkeypatch.setattr(tracking_sdf, "pose_terms", lambda *a, **k: fields.append(1) or real_terms(*a, **k))
+    shared = tracking_sdf.solve_pose(mapper.voxels, mapper.decoder, levels, T0, scfg, tr._reference)
+    n_shared = len(fields)
+    shares = tracking_sdf._shares_pose_terms
+    monkeypatch.setattr(tracking_sdf, "_shares_pose_terms", lambda a, b: False)
+    fields.clear()
+    alone = tracking_sdf.solve_pose(mapper.voxels, mapper.decoder, levels, T0, scfg, tr._reference)
+    assert len(fields) == n_shared + 1 and alone.iterations == shared.iterations > 3
+    for name in ("T", "cost", "inlier_fraction", "median_residual_m", "n_valid"):
+        assert torch.equal(getattr(shared, name), getattr(alone, name)), name
+    # what may be shared: the same point tensor and reference depth, the options the field terms depend on
+    ref = tr._reference
+    same = (finest, scfg, ref)
+    assert shares(same, (finest.blurred(), scfg, ref.blurred()))
+    assert not shares(same, (levels[0], scfg, ref))
+    assert not shares(same, (finest, scfg, None))
+    assert not shares(same, (finest, SdfSolverConfig(w_frame=0.5), ref))
