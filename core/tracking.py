@@ -45,7 +45,7 @@ from .tracking_sdf import (
     SdfSolverConfig,
     depth_reference,
     gray_images,
-    linearize,
+    map_costs,
     sample_points,
     solve_pose,
 )
@@ -421,18 +421,16 @@ class Tracker:
         them: the mean robust point-to-SDF cost of ``n_points`` of its points (the same points at every pose; a point
         outside the map costs as much as one at the residual cap), as ``[K]`` float64, in units of ``sdf_huber_m``
         squared (the ``sdf`` method's map term). Ranks start poses for :meth:`track` (recovery after a gap), whatever
-        the tracking method; per pose one evaluation of the geometric tracker's map term (the field and its gradient
-        at the points; the gradient is not needed here), no frame-to-frame term. K of them in turn: ~1 ms each at
-        1024 points on a 2-core CPU; a batched cost-only query would serve a GPU better."""
+        the tracking method: every pose in one batched field query (:func:`.tracking_sdf.map_costs`, no gradient),
+        one read-back."""
         voxels, decoder = self.voxels, self.decoder  # one snapshot for every pose (mapping may publish meanwhile)
         if voxels is None or decoder is None:
             raise ConfigError("map", "tracker has no map snapshot yet (the first frame initialises the map)")
         cfg = self.config
         pts = sample_points(frame, n_points, self.generator)
         solver = SdfSolverConfig(huber_m=cfg.sdf_huber_m, max_residual_m=cfg.sdf_max_residual_m)
-        T = torch.as_tensor(np.asarray(poses, dtype=np.float64), device=voxels.device)
-        costs = [linearize(voxels, decoder, pts, T[k], solver)[0] for k in range(T.shape[0])]
-        return torch.stack(costs).cpu().numpy()
+        T = torch.as_tensor(np.asarray(poses, dtype=np.float64), device=voxels.device).reshape(-1, 4, 4)
+        return map_costs(voxels, decoder, pts.p_cam, T, solver).cpu().numpy()
 
     # ------------------------------------------------------------------ sdf (geometric) tracker
     def _track_sdf(self, frame: FrameData, T_prior: np.ndarray, prior_from_device: bool) -> TrackResult:

@@ -51,7 +51,8 @@ import numpy as np
 import torch
 
 from .compiled import CompiledFunction
-from .field import SDFDecoder, interpolate_unchecked, local_coords, sdf_with_gradient
+from .errors import ShapeError
+from .field import NeuralField, SDFDecoder, interpolate_unchecked, local_coords, sdf_with_gradient
 from .framedata import FrameData, sample_valid_pixels
 from .geometry import invert_pose
 from .lie import perturb_right
@@ -62,7 +63,7 @@ log = logging.getLogger("voxfusion.tracking")
 __all__ = ["SdfSolverConfig", "SdfPoints", "SdfSolution", "DepthReference", "GrayImages", "depth_reference",
            "frame_residuals", "photometric_residuals", "gray_images", "smoothed_gray", "gaussian_blur",
            "separable_filter", "sample_points", "solve_pose", "linearize",
-           "linearize_terms", "pose_terms", "PoseTerms", "solve_spd", "solve_spd_elimination"]
+           "linearize_terms", "pose_terms", "PoseTerms", "map_costs", "solve_spd", "solve_spd_elimination"]
 
 _GRAY = (0.299, 0.587, 0.114)
 
@@ -518,6 +519,39 @@ def linearize(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Te
     """
     cost, H, b, terms = linearize_terms(voxels, decoder, pts, T, cfg, reference)
     return cost, H, b, terms.r, terms.ok
+
+
+def map_costs(voxels: VoxelMap, decoder: SDFDecoder, p_cam: torch.Tensor, T: torch.Tensor, cfg: SdfSolverConfig,
+              max_points: int = 1 << 18) -> torch.Tensor:
+    """The map term's cost of :func:`linearize` (``w_color`` aside) at many poses at once: camera-frame points
+    ``p_cam [N, 3]`` at each of ``T [K, 4, 4]`` (float64 camera-to-world) -> ``[K]`` float64 mean robust cost in
+    units of ``huber_m^2`` (a point outside the map, non-finite or beyond ``max_residual_m`` costs as much as one
+    at that cap). No gradient: the poses go through the field in chunks of ``max_points // N`` (one query per
+    chunk instead of ~300 operators per pose, which on a GPU are launches), with no host synchronisation.
+    :func:`linearize`'s cost, pose by pose, is the reference the tests hold it to."""
+    if T.dim() != 3 or T.shape[1:] != (4, 4):
+        raise ShapeError("T", tuple(T.shape), "[K, 4, 4]")
+    dtype = voxels.embeddings.dtype
+    n = p_cam.shape[0]
+    per_chunk = max(1, max_points // max(n, 1))
+    field = NeuralField(voxels, decoder)
+    p = p_cam.to(dtype)
+    scale = 1.0 / cfg.huber_m
+    # the same float64 Huber scale and cap as linearize's (huber_m times its reciprocal, not a literal 1)
+    k = torch.full((), cfg.huber_m, dtype=torch.float64, device=p.device) * scale
+    cap_cost = _huber_cost(torch.full((), cfg.max_residual_m, dtype=torch.float64, device=p.device) * scale, k)
+    costs = []
+    with torch.no_grad():
+        for start in range(0, T.shape[0], per_chunk):
+            Tc = T[start:start + per_chunk]
+            x = (p @ Tc[:, :3, :3].to(dtype).mT + Tc[:, None, :3, 3].to(dtype)).reshape(-1, 3)  # [k N, 3]
+            idx = voxels.lookup_voxels(x)
+            sdf, _ = field.evaluate_unchecked(x, idx.clamp(min=0), with_color=False)
+            ok = (idx >= 0) & torch.isfinite(sdf) & (sdf.abs() < cfg.max_residual_m)
+            rs = torch.where(ok, sdf, torch.zeros_like(sdf)).to(torch.float64) * scale
+            cost = torch.where(ok, _huber_cost(rs, k), cap_cost)
+            costs.append(cost.reshape(-1, n).mean(1))
+    return torch.cat(costs)
 
 
 COMPILED_LINEARIZE = CompiledFunction(linearize_terms, "tracking.compile", log)

@@ -564,3 +564,24 @@ def test_stages_on_the_same_points_share_the_field_query(room, monkeypatch):
     assert not shares(same, (levels[0], scfg, ref))
     assert not shares(same, (finest, scfg, None))
     assert not shares(same, (finest, SdfSolverConfig(w_frame=0.5), ref))
+
+
+def test_map_costs_are_linearizes_costs_at_every_pose_in_one_batch(room):
+    """The batched map-term cost (what ranks start poses after a gap) is :func:`linearize`'s cost at each pose, in
+    pose chunks of any size, including poses that see the map only in part or not at all."""
+    cap, cfg, mapper = room
+    frame = frame_to_device(cap[6], "cpu")
+    pts = sample_points(frame, 700, torch.Generator().manual_seed(4))
+    scfg = SdfSolverConfig(huber_m=0.01, max_residual_m=0.08)
+    T6 = cap[6].T_world_cam
+    poses = [perturb(T6, s) for s in (0.0, 0.3, 1.0, 3.0)] + [T6 @ se3_exp(torch.tensor(
+        [0.0, 0.0, 0.0, 0.0, np.deg2rad(a), 0.0], dtype=torch.float64)).numpy() for a in (40.0, 180.0)]
+    T = torch.as_tensor(np.stack(poses))
+    want = torch.stack([linearize(mapper.voxels, mapper.decoder, pts, T[k], scfg)[0] for k in range(len(poses))])
+    for max_points in (1 << 18, 1400, 1):  # all at once, two poses per chunk, one
+        got = tracking_sdf.map_costs(mapper.voxels, mapper.decoder, pts.p_cam, T, scfg, max_points=max_points)
+        assert got.dtype == torch.float64 and got.shape == (len(poses),)
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-7)
+    assert want[0] < want[2] < want[3] and want[-1] > 10 * want[0]  # a meaningful spread of costs
+    with pytest.raises(tracking_sdf.ShapeError):
+        tracking_sdf.map_costs(mapper.voxels, mapper.decoder, pts.p_cam, T[0], scfg)
