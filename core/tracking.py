@@ -202,13 +202,13 @@ class TrackingConfig:
     AMD EPYC of 2026-11-25 whole frames with one and two threads could not be told apart (4 A/B pairs within
     its +-10 % noise; `docs/engine-history.md`), so the default stays 1."""
     compile: bool = False
-    """``sdf`` method: run each solver iteration's residuals and normal equations (:func:`.tracking_sdf.linearize`)
-    through :func:`torch.compile` (dynamic shapes; one graph per solver stage, compiled on a session's first
-    frames, whose realtime feed is dropped meanwhile; eager with one warning where compilation fails). Off in
-    every preset: on the 2-core AMD EPYC a call at 4096 points took 3.2 instead of 6.8 ms and a session's
-    frames ~8 ms less of ~90, but compiling took 7 s per process with torch's on-disk cache warm and ~30 s
-    cold, more than a run of a few hundred frames saves (``python bench/bench_accel.py``, variant ``tracking
-    compile``; ``make bench-gpu`` measures it on a GPU)."""
+    """``sdf`` method: run each solver iteration's residuals and normal equations
+    (:func:`.tracking_sdf.linearize_terms`) through :func:`torch.compile` (dynamic shapes; one graph per solver
+    stage, compiled on a session's first frames, whose realtime feed is dropped meanwhile; eager with one warning
+    where compilation fails). Off in every preset: on the 2-core AMD EPYC a call at 4096 points took 3.2 instead of
+    6.8 ms and a session's frames ~8 ms less of ~90, but compiling took 7 s per process with torch's on-disk cache
+    warm and ~30 s cold, more than a run of a few hundred frames saves (``python bench/bench_accel.py``, variant
+    ``tracking compile``; ``make bench-gpu`` measures it on a GPU)."""
     retry_cost_factor: float = 3.0
     """Recovery after a gap: a frame that comes after lost frames, or ``retry_gap`` times the usual interval between
     tracked frames or more after the last tracked one, and whose tracking is lost or costs (``TrackResult.loss``)
@@ -386,8 +386,9 @@ class Tracker:
     def sdf_stages(self) -> int:
         """Solver stages of the ``sdf`` method per frame, with the reference it holds now: its levels, and the
         blurred photometric stage where that runs. Each stage evaluates its starting pose once before its
-        first step, so a frame makes ``iterations + sdf_stages()`` field evaluations (what benchmarks count
-        per evaluation)."""
+        first step, so a frame makes ``iterations + sdf_stages()`` evaluations (what benchmarks count per
+        evaluation); the finest stage's first one reuses the blurred stage's field query where that stage runs
+        (eager), so it costs only the photometric term and the normal equations."""
         ref = self._reference
         blurred = self._photo_blur_weight() > 0 and ref is not None and ref.gray_blurred is not None
         return self.config.sdf_levels + int(blurred)
@@ -421,15 +422,15 @@ class Tracker:
         them: the mean robust point-to-SDF cost of ``n_points`` of its points (the same points at every pose; a point
         outside the map costs as much as one at the residual cap), as ``[K]`` float64, in units of ``sdf_huber_m``
         squared (the ``sdf`` method's map term). Ranks start poses for :meth:`track` (recovery after a gap), whatever
-        the tracking method: every pose in one batched field query (:func:`.tracking_sdf.map_costs`, no gradient),
-        one read-back."""
+        the tracking method: the poses in batched field queries (:func:`.tracking_sdf.map_costs`, no gradient; 2^18
+        points each, so two for 390 poses at 1024 points), one read-back."""
         voxels, decoder = self.voxels, self.decoder  # one snapshot for every pose (mapping may publish meanwhile)
         if voxels is None or decoder is None:
             raise ConfigError("map", "tracker has no map snapshot yet (the first frame initialises the map)")
         cfg = self.config
         pts = sample_points(frame, n_points, self.generator)
         solver = SdfSolverConfig(huber_m=cfg.sdf_huber_m, max_residual_m=cfg.sdf_max_residual_m)
-        T = torch.as_tensor(np.asarray(poses, dtype=np.float64), device=voxels.device).reshape(-1, 4, 4)
+        T = torch.as_tensor(np.asarray(poses, dtype=np.float64), device=voxels.device)
         return map_costs(voxels, decoder, pts.p_cam, T, solver).cpu().numpy()
 
     # ------------------------------------------------------------------ sdf (geometric) tracker

@@ -51,7 +51,7 @@ import numpy as np
 import torch
 
 from .compiled import CompiledFunction
-from .errors import ShapeError
+from .errors import ShapeError, ValidationError
 from .field import NeuralField, SDFDecoder, interpolate_unchecked, local_coords, sdf_with_gradient
 from .framedata import FrameData, sample_valid_pixels
 from .geometry import invert_pose
@@ -110,7 +110,8 @@ class SdfSolverConfig:
     points, against the reference's blurred gray image (``DepthReference.gray_blurred``; needs one); that
     stage ends at ``coarse_converge_tol``. 0: no such stage."""
     compile: bool = False
-    """Run :func:`linearize` through :func:`torch.compile` (:data:`COMPILED_LINEARIZE`; eager where that fails)."""
+    """Run :func:`linearize_terms` through :func:`torch.compile` (:data:`COMPILED_LINEARIZE`; eager where that
+    fails). The stages then share no field terms (:func:`solve_pose`)."""
 
 
 @dataclass
@@ -401,16 +402,18 @@ def solve_spd_elimination(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 class PoseTerms(NamedTuple):
     """What :func:`linearize_terms` computes at one pose that does not depend on the points' gray levels, so
-    that two solver stages on the same points and the same reference depth (the blurred photometric stage and
-    the finest) share it at the pose where one ends and the next begins.
+    that two solver stages on the same points and the same reference geometry (the blurred photometric stage
+    and the finest) share it at the pose where one ends and the next begins.
 
     ``r [N]`` SDF residuals (metres), ``grads [N, 3]`` their world gradients, ``ok [N]`` the points inside the
-    map, finite and below ``max_residual_m``; with the colour term (else None) the colour head's gray level
-    ``gray_pred [N]`` and its world gradient ``g_col [N, 3]``; with the frame-to-frame term (else None) its
-    residuals ``rf [N]`` (metres), world gradients ``gf [N, 3]`` and usable pairs ``okf [N]``."""
+    map with a finite residual below ``max_residual_m`` and a finite gradient; with the colour term (else None)
+    the colour head's gray level ``gray_pred [N]`` and its world gradient ``g_col [N, 3]``; with the
+    frame-to-frame term (else None) its residuals ``rf [N]`` (metres), world gradients ``gf [N, 3]`` and usable
+    pairs ``okf [N]``. What a stage keeps when no later stage reuses its terms is ``r`` and ``ok`` alone (the
+    rest None)."""
 
     r: torch.Tensor
-    grads: torch.Tensor
+    grads: torch.Tensor | None
     ok: torch.Tensor
     gray_pred: torch.Tensor | None
     g_col: torch.Tensor | None
@@ -418,15 +421,21 @@ class PoseTerms(NamedTuple):
     gf: torch.Tensor | None
     okf: torch.Tensor | None
 
-    def where(self, cond: torch.Tensor, other: PoseTerms) -> PoseTerms:
-        """These terms where the 0-dim ``cond`` holds, else ``other``'s (on the device, no read-back)."""
+    def where(self, cond: torch.Tensor, other: PoseTerms, residuals_only: bool = False) -> PoseTerms:
+        """These terms where the 0-dim ``cond`` holds, else ``other``'s (on the device, no read-back);
+        ``residuals_only``: ``r`` and ``ok`` alone, the rest None (what a stage whose terms nobody reuses keeps)."""
+        if residuals_only:
+            return PoseTerms(torch.where(cond, self.r, other.r), None, torch.where(cond, self.ok, other.ok),
+                             None, None, None, None, None)
         return PoseTerms(*(a if a is None else torch.where(cond, a, b) for a, b in zip(self, other, strict=True)))
 
 
 def pose_terms(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.Tensor, cfg: SdfSolverConfig,
                reference: DepthReference | None = None) -> PoseTerms:
-    """The field's residuals at pose ``T [4, 4]`` (float64) and, with ``reference`` and ``cfg.w_frame > 0``,
-    the frame-to-frame term's (:class:`PoseTerms`). No host synchronisation."""
+    """The field's residuals at pose ``T [4, 4]`` (float64): the SDF and, with the colour term (``w_color``, points
+    with gray levels, a colour head), the colour head's gray level, each with its world gradient; with
+    ``reference`` and ``cfg.w_frame > 0``, the frame-to-frame term's (:class:`PoseTerms`). No host
+    synchronisation."""
     dtype = voxels.embeddings.dtype
     p_cam = pts.p_cam.to(dtype)
     x = (p_cam @ T[:3, :3].to(dtype).T + T[:3, 3].to(dtype)).detach()
@@ -468,13 +477,16 @@ def linearize_terms(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: to
     levels are evaluated. No host synchronisation."""
     if terms is None:
         terms = pose_terms(voxels, decoder, pts, T, cfg, reference)
+    if terms.grads is None:
+        raise ValidationError("terms", "holds residuals only (PoseTerms.where with residuals_only); pass full terms")
     dtype = voxels.embeddings.dtype
     R = T[:3, :3].to(dtype)
     p_cam = pts.p_cam.to(dtype)
     r, ok = terms.r, terms.ok
     # residual blocks (value, world gradient, Huber scale, cost cap, valid), all in metres: the SDF, then the
     # optional photometric and frame-to-frame terms, weighted; stacked so one pass builds H and b
-    blocks = [(r, terms.grads, cfg.huber_m, cfg.max_residual_m, ok)]
+    blocks: list[tuple[torch.Tensor, torch.Tensor, float, float, torch.Tensor]] = [
+        (r, terms.grads, cfg.huber_m, cfg.max_residual_m, ok)]
     if terms.gray_pred is not None and terms.g_col is not None and pts.gray is not None:
         rc = (terms.gray_pred - pts.gray.to(dtype)) * cfg.w_color
         blocks.append((rc, terms.g_col * cfg.w_color, cfg.huber_color * cfg.w_color, cfg.max_residual_m,
@@ -525,10 +537,13 @@ def map_costs(voxels: VoxelMap, decoder: SDFDecoder, p_cam: torch.Tensor, T: tor
               max_points: int = 1 << 18) -> torch.Tensor:
     """The map term's cost of :func:`linearize` (``w_color`` aside) at many poses at once: camera-frame points
     ``p_cam [N, 3]`` at each of ``T [K, 4, 4]`` (float64 camera-to-world) -> ``[K]`` float64 mean robust cost in
-    units of ``huber_m^2`` (a point outside the map, non-finite or beyond ``max_residual_m`` costs as much as one
-    at that cap). No gradient: the poses go through the field in chunks of ``max_points // N`` (one query per
-    chunk instead of ~300 operators per pose, which on a GPU are launches), with no host synchronisation.
-    :func:`linearize`'s cost, pose by pose, is the reference the tests hold it to."""
+    units of ``huber_m^2`` (a point outside the map, with a non-finite SDF or beyond ``max_residual_m`` costs as
+    much as one at that cap). No gradient: the poses go through the field in chunks of ``max_points // N`` (one
+    query per chunk instead of ~300 operators per pose, which on a GPU are launches), with no host
+    synchronisation. :func:`linearize`'s cost, pose by pose, is the reference the tests hold it to; it also
+    caps a point whose SDF gradient is not finite, which this cannot see (with a float32 decoder a finite SDF
+    has a finite gradient). With ``field.compile`` the decoder's first call here (no gradient) compiles a graph
+    of its own, once per process."""
     if T.dim() != 3 or T.shape[1:] != (4, 4):
         raise ShapeError("T", tuple(T.shape), "[K, 4, 4]")
     dtype = voxels.embeddings.dtype
@@ -550,13 +565,14 @@ def map_costs(voxels: VoxelMap, decoder: SDFDecoder, p_cam: torch.Tensor, T: tor
             ok = (idx >= 0) & torch.isfinite(sdf) & (sdf.abs() < cfg.max_residual_m)
             rs = torch.where(ok, sdf, torch.zeros_like(sdf)).to(torch.float64) * scale
             cost = torch.where(ok, _huber_cost(rs, k), cap_cost)
-            costs.append(cost.reshape(-1, n).mean(1))
+            costs.append(cost.reshape(-1, n).sum(1) / n)  # as linearize's sum / n, not mean's 1 / n factor
     return torch.cat(costs)
 
 
 COMPILED_LINEARIZE = CompiledFunction(linearize_terms, "tracking.compile", log)
-""":func:`linearize_terms` compiled (``tracking.compile``; always called without ``terms``): one graph per solver
-stage, shapes dynamic (the map grows between frames); tested against :func:`linearize` itself. A call at 4096
+""":func:`linearize_terms` compiled (``tracking.compile``; always called without ``terms``: with it the solver's
+stages share no terms, so that every evaluation runs the compiled graph): one graph per solver stage, shapes
+dynamic (the map grows between frames); tested against :func:`linearize_terms` itself. A call at 4096
 points with every term took 3.2 ms against 6.8 eager on the 2-core AMD EPYC (one thread)."""
 
 
@@ -582,11 +598,13 @@ def _stages(levels: list[SdfPoints], cfg: SdfSolverConfig, reference: DepthRefer
 def _shares_pose_terms(a: tuple[SdfPoints, SdfSolverConfig, DepthReference | None],
                        b: tuple[SdfPoints, SdfSolverConfig, DepthReference | None]) -> bool:
     """Whether two solver stages ``(points, options, reference)`` have the same :class:`PoseTerms` at a pose:
-    the same point positions (the same tensor), both with or without gray levels, the same reference depth
-    (the same tensor, or none) and the options those terms depend on."""
+    the same point positions (the same tensor), both with or without gray levels, the same reference geometry
+    (its depth, intrinsics, pose and offsets the same tensors, or no reference; its gray images may differ) and
+    the options those terms depend on."""
     (pa, ca, ra), (pb, cb, rb) = a, b
-    same_ref = (ra is None and rb is None) or (ra is not None and rb is not None
-                                               and ra.depth_padded is rb.depth_padded)
+    same_ref = (ra is None and rb is None) or (
+        ra is not None and rb is not None and ra.baseline_px == rb.baseline_px
+        and all(getattr(ra, f) is getattr(rb, f) for f in ("depth_padded", "K", "T_ref_world", "offsets")))
     return (pa.p_cam is pb.p_cam and (pa.gray is None) == (pb.gray is None) and same_ref
             and (ca.max_residual_m, ca.w_color, ca.w_frame, ca.frame_max_m)
             == (cb.max_residual_m, cb.w_color, cb.w_frame, cb.frame_max_m))
@@ -608,7 +626,10 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
     iterations = 0
     stages = _stages(levels, cfg, reference)
     lin = COMPILED_LINEARIZE if cfg.compile else linearize_terms
-    shared: tuple[tuple[SdfPoints, SdfSolverConfig, DepthReference | None], PoseTerms] | None = None
+    # which stage starts from the previous one's terms (the blurred stage, then the finest: the same points and
+    # reference geometry); none when compiled, so that every evaluation runs the compiled graph
+    shares = [not cfg.compile and k > 0 and _shares_pose_terms(stages[k - 1], stages[k]) for k in range(len(stages))]
+    carried: PoseTerms | None = None
     for stage, (pts, lcfg, lref) in enumerate(stages):
         finest = stage == len(stages) - 1
         tol = cfg.converge_tol if finest or cfg.coarse_converge_tol is None else cfg.coarse_converge_tol
@@ -624,10 +645,9 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
             cost = cost + 0.5 * (info * xi * xi).sum() / n_points
             return cost, H, b, terms
 
-        # where the previous stage ended, its field and frame-to-frame terms are this one's when both have the
-        # same points and reference depth (the blurred stage, then the finest): only the gray levels differ
-        reuse = shared[1] if shared is not None and _shares_pose_terms(shared[0], (pts, lcfg, lref)) else None
-        cost_best, H_best, b_best, terms_best = evaluate(T_best, xi_acc, reuse)
+        # where the previous stage ended, its field and frame-to-frame terms are this one's (only gray levels differ)
+        cost_best, H_best, b_best, terms_best = evaluate(T_best, xi_acc, carried if shares[stage] else None)
+        keep_all = stage + 1 < len(stages) and shares[stage + 1]
         lam = torch.full((), cfg.lambda_init, dtype=torch.float64, device=dev)
         for it in range(1, cfg.iters + 1):
             A = H_best + lam * (torch.diag(torch.diagonal(H_best)) + 1e-9 * eye)
@@ -646,10 +666,10 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
             cost_best = torch.where(better, cost_c, cost_best)
             H_best = torch.where(better, H_c, H_best)
             b_best = torch.where(better, b_c, b_best)
-            terms_best = terms_c.where(better, terms_best)
+            terms_best = terms_c.where(better, terms_best, residuals_only=not keep_all)
             lam = torch.where(better, (lam * 0.3).clamp(min=1e-7), lam * 5.0)
             iterations += 1
-        shared = ((pts, lcfg, lref), terms_best)
+        carried = terms_best
         r, ok = terms_best.r, terms_best.ok
     assert r is not None and ok is not None
     a = r.abs()

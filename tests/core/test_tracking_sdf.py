@@ -1,6 +1,8 @@
 """The geometric (point-to-SDF) tracker: Jacobians against autograd, perturbation recovery on the synthetic
 room and on real 7-Scenes frames, lost-frame detection, and the render tracker beside it."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -9,7 +11,7 @@ from voxfusion.core import tracking_sdf
 from voxfusion.core.datasets import open_capture
 from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
-from voxfusion.core.errors import ConfigError
+from voxfusion.core.errors import ConfigError, ValidationError
 from voxfusion.core.framedata import FrameData, frame_to_device
 from voxfusion.core.lie import perturb_right, se3_exp
 from voxfusion.core.reconstruct import make_mapper
@@ -543,27 +545,57 @@ def test_stages_on_the_same_points_share_the_field_query(room, monkeypatch):
     images = tr._gray_images(frame)
     finest = sample_points(frame, 1024, torch.Generator().manual_seed(3), with_gray=True, blurred=images.blurred)
     levels = [finest.prefix(256), finest]
-    scfg = SdfSolverConfig(iters=4, w_frame=1.0, w_photo=0.1, w_photo_blurred=0.3)
+    scfg = SdfSolverConfig(iters=4, w_color=0.2, w_frame=1.0, w_photo=0.1, w_photo_blurred=0.3)
     T0 = torch.as_tensor(perturb(cap[6].T_world_cam, 0.3))
     fields = []
     real_terms = tracking_sdf.pose_terms
     monkeypatch.setattr(tracking_sdf, "pose_terms", lambda *a, **k: fields.append(1) or real_terms(*a, **k))
     shared = tracking_sdf.solve_pose(mapper.voxels, mapper.decoder, levels, T0, scfg, tr._reference)
     n_shared = len(fields)
+    assert n_shared == shared.iterations + 3 - 1  # 3 stages, each evaluates its start; the finest reuses
     shares = tracking_sdf._shares_pose_terms
     monkeypatch.setattr(tracking_sdf, "_shares_pose_terms", lambda a, b: False)
     fields.clear()
     alone = tracking_sdf.solve_pose(mapper.voxels, mapper.decoder, levels, T0, scfg, tr._reference)
-    assert len(fields) == n_shared + 1 and alone.iterations == shared.iterations > 3
+    assert len(fields) == n_shared + 1 and alone.iterations == shared.iterations
     for name in ("T", "cost", "inlier_fraction", "median_residual_m", "n_valid"):
         assert torch.equal(getattr(shared, name), getattr(alone, name)), name
-    # what may be shared: the same point tensor and reference depth, the options the field terms depend on
+    # compiled (here: the compiled function's stand-in, the plain one), the stages share nothing
+    monkeypatch.setattr(tracking_sdf, "_shares_pose_terms", shares)
+    monkeypatch.setattr(tracking_sdf, "COMPILED_LINEARIZE", tracking_sdf.linearize_terms)
+    fields.clear()
+    compiled = tracking_sdf.solve_pose(mapper.voxels, mapper.decoder, levels, T0, replace(scfg, compile=True),
+                                       tr._reference)
+    assert len(fields) == compiled.iterations + 3 and torch.equal(compiled.T, shared.T)
+    # what may be shared: the same point tensor and reference geometry, the options the field terms depend on
     ref = tr._reference
     same = (finest, scfg, ref)
     assert shares(same, (finest.blurred(), scfg, ref.blurred()))
     assert not shares(same, (levels[0], scfg, ref))
     assert not shares(same, (finest, scfg, None))
-    assert not shares(same, (finest, SdfSolverConfig(w_frame=0.5), ref))
+    assert not shares(same, (finest, replace(scfg, w_frame=0.5), ref))
+    assert not shares(same, (finest, scfg, replace(ref, T_ref_world=ref.T_ref_world.clone())))
+
+
+def test_reused_pose_terms_give_what_a_fresh_evaluation_gives(room):
+    """:func:`linearize_terms` from terms computed beforehand at the same pose (what the finest stage reuses) is
+    the fresh evaluation, bit for bit, with every term on: the SDF, the colour head against the points' own gray
+    levels, frame-to-frame and photometric; terms reduced to residuals cannot be reused."""
+    mapper, ref, pts, T = photometric_setup(room, n_points=512, perturbation=0.1)
+    scfg = SdfSolverConfig(w_color=0.2, w_frame=1.0, w_photo=0.1)
+    terms = tracking_sdf.pose_terms(mapper.voxels, mapper.decoder, pts, T, scfg, ref)
+    assert all(t is not None for t in terms)  # every term present
+    fresh = tracking_sdf.linearize_terms(mapper.voxels, mapper.decoder, pts, T, scfg, ref)
+    reused = tracking_sdf.linearize_terms(mapper.voxels, mapper.decoder, pts, T, scfg, ref, terms)
+    for a, b in zip((*fresh[:3], *fresh[3]), (*reused[:3], *reused[3]), strict=True):
+        assert torch.equal(a, b)
+    # the colour term compares with the points' gray levels: other gray levels, another system
+    other = tracking_sdf.SdfPoints(pts.p_cam, pts.gray.flip(0))
+    assert not torch.equal(tracking_sdf.linearize_terms(mapper.voxels, mapper.decoder, other, T, scfg, ref, terms)[2],
+                           reused[2])
+    with pytest.raises(ValidationError):
+        tracking_sdf.linearize_terms(mapper.voxels, mapper.decoder, pts, T, scfg, ref,
+                                     terms.where(torch.tensor(True), terms, residuals_only=True))
 
 
 def test_map_costs_are_linearizes_costs_at_every_pose_in_one_batch(room):
