@@ -443,9 +443,28 @@ class SlamSystem:
         starts[:, :, :3, 3] = moves[:, None, :]
         return last @ starts.reshape(-1, 4, 4)
 
+    def _keyframe_starts(self) -> tuple[np.ndarray, list[Keyframe]]:
+        """Start poses for relocalisation (``tracking.retry_keyframes``): ``([K T, 4, 4], [K T])``, the published
+        map's keyframe poses (at most that many keyframes, spread evenly over them) each turned by
+        :meth:`_retry_turns`, and the keyframe each came from; none when off or before a map exists."""
+        n = self.config.tracking.retry_keyframes
+        snap = self.snapshot
+        if n == 0 or snap is None or not snap.keyframes:
+            return np.zeros((0, 4, 4)), []
+        kfs = list(snap.keyframes)
+        if len(kfs) > n:
+            kfs = [kfs[i] for i in np.linspace(0, len(kfs) - 1, n).round().astype(int)]
+        rotations = self._retry_turns()
+        turns = np.tile(np.eye(4), (len(rotations), 1, 1))
+        turns[:, :3, :3] = rotations
+        poses = (np.stack([kf.published_pose() for kf in kfs])[:, None] @ turns[None]).reshape(-1, 4, 4)
+        return poses, [kf for kf in kfs for _ in rotations]
+
     def _retry_from_other_starts(self, data: FrameData, first: TrackResult, prior: np.ndarray) -> TrackResult:
         """Track ``data`` again from the :meth:`_retry_starts` where its depth fits the map best
-        (:meth:`.tracking.Tracker.pose_costs`), best first, until one costs as usual (``tracking.retry_cost_factor``).
+        (:meth:`.tracking.Tracker.pose_costs`), best first, until one costs as usual (``tracking.retry_cost_factor``);
+        where none of the best ``retry_tracks`` does, from the best of the :meth:`_keyframe_starts` the same way, each
+        with its keyframe as the frame-to-frame terms' reference (the last tracked frame may be far from there).
         A retry replaces the first result only when it is not lost and, if the first was lost, costs as usual (a
         lost frame is not fused, a wrong pose would be), else costs under :data:`RETRY_MIN_GAIN` times the first
         (among poses that are all wrong, the lowest cost is no better a guess than the motion prior's); of those,
@@ -453,11 +472,21 @@ class SlamSystem:
         t0 = time.perf_counter()
         self.retried.append(first.frame_index)
         self._retried_since_good = True
-        starts = self._retry_starts(prior)
-        order = np.argsort(self.tracker.pose_costs(data, starts), kind="stable")
+        near = self._retry_starts(prior)
+        far, far_keyframes = self._keyframe_starts()
+        starts = np.concatenate([near, far])
+        costs = self.tracker.pose_costs(data, starts)  # one batched query for both sets
+        n_tracks = self.config.tracking.retry_tracks
+        order = np.concatenate([np.argsort(costs[:len(near)], kind="stable")[:n_tracks],
+                                len(near) + np.argsort(costs[len(near):], kind="stable")[:n_tracks]])
         best, tries, iterations = first, 0, first.iterations
-        for k in order[:self.config.tracking.retry_tracks]:
-            again = self.tracker.track(data, starts[k], False)
+        for k in order:
+            if k < len(near):
+                again = self.tracker.track(data, starts[k], False)
+            else:
+                kf = far_keyframes[k - len(near)]
+                with self.tracker.referenced_to(kf.data, kf.published_pose()):
+                    again = self.tracker.track(data, starts[k], False)
             tries += 1
             iterations += again.iterations
             acceptable = not again.lost and (self._cost_is_usual(again.loss) if first.lost

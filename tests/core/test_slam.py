@@ -1,5 +1,6 @@
 """Tracking and the SLAM system on tiny synthetic captures (correctness, never timings)."""
 
+import dataclasses
 import threading
 import time
 
@@ -414,6 +415,44 @@ def test_a_wrong_start_after_a_gap_is_tracked_again_from_the_last_pose():
     on = [pose_error(r.current_pose(), f.T_world_cam)[0] for r, f in zip(slam.records[after_gap], frames[after_gap],
                                                                         strict=True)]
     assert max(on) < 0.01
+
+
+def test_a_camera_back_at_a_mapped_place_after_a_gap_is_relocalised_at_a_keyframe():
+    """The room mapped over frames 0-59, then, after a 1 s pause, the camera is back where frame 15 was (40 cm and
+    36 deg from where it was last tracked: beyond the turns and the +-20 cm grid around the last pose, from which it
+    stayed 44-50 cm off with ``retry_keyframes=0``): tracked again from the keyframes' poses, against the keyframe's
+    own depth, it is placed within a centimetre and stays there."""
+    cap = SyntheticCapture(SyntheticConfig(n_frames=60, width=160, height=120, seed=0))
+    frames = list(cap.frames())
+    back = frames[15:20]
+    slam = SlamSystem(load_preset("synthetic+cpu", [], profile=cap.profile))
+    for k, f in enumerate(frames + back):
+        slam.process(f.with_(index=k, timestamp_s=k / 30 + (1.0 if k >= len(frames) else 0.0)))
+    jump = pose_error(frames[-1].T_world_cam, back[0].T_world_cam)
+    assert jump[0] > 0.35 and jump[1] > 30, jump
+    assert slam.retried == [len(frames)]
+    after = [pose_error(r.current_pose(), f.T_world_cam)[0] for r, f in zip(slam.records[len(frames):], back,
+                                                                           strict=True)]
+    assert max(after) < 0.01, after
+    # the start poses: every keyframe turned as the last pose is; none with retry_keyframes=0
+    starts, sources = slam._keyframe_starts()
+    n_turns = len(slam._retry_turns())
+    assert starts.shape == (len(slam.snapshot.keyframes) * n_turns, 4, 4) and len(sources) == len(starts)
+    np.testing.assert_allclose(starts[0], slam.snapshot.keyframes[0].published_pose(), atol=1e-12)  # pan 0 first
+    slam.config = dataclasses.replace(slam.config, tracking=dataclasses.replace(slam.config.tracking,
+                                                                                 retry_keyframes=2))
+    assert len(slam._keyframe_starts()[1]) == 2 * n_turns
+    slam.config = dataclasses.replace(slam.config, tracking=dataclasses.replace(slam.config.tracking,
+                                                                                 retry_keyframes=0))
+    assert slam._keyframe_starts()[0].shape == (0, 4, 4)
+    with pytest.raises(ConfigError):
+        load_preset("cpu", ["tracking.retry_keyframes=-1"])
+    # a keyframe is the reference only within the block
+    kf, kept = slam.snapshot.keyframes[0], slam.tracker._reference
+    with slam.tracker.referenced_to(kf.data, kf.published_pose()):
+        assert slam.tracker._reference is not kept
+        np.testing.assert_allclose(slam.tracker._reference.T_ref_world.numpy(), np.linalg.inv(kf.published_pose()))
+    assert slam.tracker._reference is kept
 
 
 def test_retry_turns_are_rotations_about_the_camera_nearest_first():
