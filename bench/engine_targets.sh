@@ -10,7 +10,9 @@
 #   * held-out seeds (synthetic room seeds 3-6, fast rotation seeds 3-5), both methods: captures the targets'
 #     seeds do not cover.
 #   * with --gap: only the recovery after a gap, the fast-rotation room seeds 0/1/2 with frames 40-54 without depth,
-#     both methods, and ours again without the retry (bench/results/gap_*.json).
+#     both methods, and ours again without the retry (bench/results/gap_*.json); and relocalisation, the synthetic
+#     room seeds 0/1/2 with the camera back at frame 15's place after frame 59 and a 1 s pause, both methods, and
+#     ours again without keyframe start poses (bench/results/revisit_*.json).
 # Usage: bash bench/engine_targets.sh [--quick | --heldout | --gap]   (--quick: seed 0 only, no held-out seeds;
 #   --heldout: only the held-out seeds)
 set -u
@@ -36,6 +38,12 @@ if [ "${1:-}" = "--gap" ]; then
             --depth-gap 40+15 --method voxfusion --vf-set tracking.retry_cost_factor=0
     done
     run "gap_synthetic_100f_seed1" --synthetic --frames 100 --seed 1 --depth-gap 40+15 --method baseline voxfusion
+    for s in $SEEDS; do
+        run "revisit_synthetic_60f_seed$s" --synthetic --frames 60 --seed "$s" --revisit 60+15+15 \
+            --method baseline voxfusion
+        run "revisit_synthetic_60f_seed${s}_no_keyframes" --synthetic --frames 60 --seed "$s" --revisit 60+15+15 \
+            --method voxfusion --vf-set tracking.retry_keyframes=0
+    done
     exit 0
 fi
 if [ "$ONLY_HELDOUT" = 0 ]; then

@@ -294,10 +294,28 @@ def _open(args: argparse.Namespace) -> tuple[Capture, trimesh.Trimesh | None, st
         capture = TransformedCapture(capture, partial(drop_depth, start=start, stop=start + length))
         name += f"_gap{start}+{length}"
         desc["depth_gap"] = {"start": start, "frames": length}
+    if args.revisit is not None:
+        from voxfusion.core.datasets.transforms import RevisitCapture
+
+        at, back_to, length = args.revisit
+        capture = RevisitCapture(capture, at, back_to, length, pause_s=1.0)
+        name += f"_revisit{at}+{back_to}+{length}"
+        desc["revisit"] = {"at": at, "back_to": back_to, "frames": length, "pause_s": 1.0}
     return capture, gt, name, desc
 
 
 # ------------------------------------------------------------------------------------------ evaluation
+
+
+def _revisit(text: str) -> tuple[int, int, int]:
+    """``AT+BACK+FRAMES`` -> ``(AT, BACK, FRAMES)`` (``--revisit``)."""
+    try:
+        at, back, length = (int(v) for v in text.split("+"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected AT+BACK+FRAMES, e.g. 60+15+15, got {text!r}") from None
+    if at < 1 or back < 0 or length < 1:
+        raise argparse.ArgumentTypeError(f"need AT >= 1, BACK >= 0 and FRAMES >= 1, got {text!r}")
+    return at, back, length
 
 
 def _gap(text: str) -> tuple[int, int]:
@@ -390,6 +408,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--depth-gap", type=_gap, default=None, metavar="START+FRAMES",
                    help="no depth in frames START .. START+FRAMES-1 (a sensor that saw nothing): how tracking comes "
                         "back after a gap, e.g. 40+15")
+    p.add_argument("--revisit", type=_revisit, default=None, metavar="AT+BACK+FRAMES",
+                   help="frames 0 .. AT-1, then after a 1 s pause frames BACK .. BACK+FRAMES-1 again (re-stamped): a "
+                        "camera back at a place it mapped, how tracking relocalises, e.g. 60+15+15")
     p.add_argument("--method", nargs="+", default=["baseline"], choices=[*METHODS, *PLANNED_METHODS],
                    help="methods to run, in order (default: baseline)")
     p.add_argument("--max-frames", type=int, default=None, help="use at most this many frames")

@@ -17,6 +17,7 @@ from .scannet import ScanNetCapture
 from .sevenscenes import SevenScenesCapture
 from .stray import StrayCapture
 from .transforms import (
+    RevisitCapture,
     SlicedCapture,
     TransformedCapture,
     clip_depth,
@@ -51,4 +52,5 @@ __all__ = [
     "drop_depth",
     "TransformedCapture",
     "SlicedCapture",
+    "RevisitCapture",
 ]

@@ -2,7 +2,8 @@
 
 Frame transforms are plain functions ``RGBDFrame -> RGBDFrame`` (frames are immutable; each returns a
 new, re-validated frame). :class:`TransformedCapture` applies a chain of them lazily to every frame of a
-capture, :class:`SlicedCapture` is a lazy ``start:stop:step`` view of one.
+capture, :class:`SlicedCapture` is a lazy ``start:stop:step`` view of one and :class:`RevisitCapture` one in which
+the camera comes back to a place it saw.
 
 Example::
 
@@ -31,6 +32,7 @@ __all__ = [
     "drop_depth",
     "TransformedCapture",
     "SlicedCapture",
+    "RevisitCapture",
 ]
 
 FrameTransform = Callable[[RGBDFrame], RGBDFrame]
@@ -146,6 +148,48 @@ class SlicedCapture(BaseCapture):
     def _load(self, i: int) -> RGBDFrame:
         src = self._indices[i]
         frame = self.capture[src]
+        return frame.with_(index=i, meta={**frame.meta, "source_index": src})
+
+    @property
+    def gt_mesh_path(self) -> Path | None:
+        return self.capture.gt_mesh_path
+
+    @property
+    def profile(self) -> CaptureProfile:
+        """The wrapped capture's profile."""
+        return self.capture.profile
+
+
+class RevisitCapture(BaseCapture):
+    """The first ``at`` frames of ``capture``, then, after ``pause_s`` seconds without frames, its frames ``back_to
+    .. back_to + frames - 1`` again: a camera that comes back to a place it saw (covered while its user walked back,
+    or a robot that returned), for testing relocalisation. Frames are re-indexed in order and re-stamped so that the
+    clock runs on (the revisit's frames keep their own spacing, ``pause_s`` after the last first-pass frame); each
+    keeps its source position in ``meta["source_index"]`` and its reference pose.
+    """
+
+    def __init__(self, capture: Capture, at: int, back_to: int, frames: int, pause_s: float = 1.0) -> None:
+        if not (1 <= at <= len(capture) and 0 <= back_to and frames >= 1 and back_to + frames <= len(capture)):
+            raise ValidationError("at/back_to/frames", f"need 1 <= at <= {len(capture)}, back_to >= 0, frames >= 1 and "
+                                  f"back_to + frames <= {len(capture)}; got {at}, {back_to}, {frames}")
+        if not pause_s >= 0:
+            raise ValidationError("pause_s", f"must be >= 0, got {pause_s}")
+        self.capture = capture
+        self.name = capture.name
+        self.path = Path(capture.path)
+        self._sources = list(range(at)) + list(range(back_to, back_to + frames))
+        self._at, self._back_to, self._pause_s = at, back_to, pause_s
+
+    def __len__(self) -> int:
+        return len(self._sources)
+
+    def _load(self, i: int) -> RGBDFrame:
+        src = self._sources[i]
+        frame = self.capture[src]
+        if i >= self._at:  # the clock runs on from the last first-pass frame
+            last = self.capture[self._at - 1].timestamp_s
+            first_back = self.capture[self._back_to].timestamp_s
+            frame = frame.with_(timestamp_s=last + self._pause_s + (frame.timestamp_s - first_back))
         return frame.with_(index=i, meta={**frame.meta, "source_index": src})
 
     @property

@@ -265,6 +265,21 @@ def test_run_py_depth_gap_blanks_frames_and_names_the_result():
             build_parser().parse_args(["--synthetic", "--depth-gap", bad])
 
 
+def test_run_py_revisit_comes_back_and_names_the_result():
+    from bench.run import _open, build_parser
+
+    args = build_parser().parse_args(["--synthetic", "--frames", "6", "--width", "32", "--height", "24",
+                                      "--revisit", "5+1+2"])
+    capture, _, name, desc = _open(args)
+    assert name.endswith("_revisit5+1+2") and desc["revisit"] == {"at": 5, "back_to": 1, "frames": 2, "pause_s": 1.0}
+    assert [capture[i].meta["source_index"] for i in range(len(capture))] == [0, 1, 2, 3, 4, 1, 2]
+    np.testing.assert_array_equal(capture[5].T_world_cam, capture[1].T_world_cam)  # the reference pose comes along
+    assert capture[5].timestamp_s > capture[4].timestamp_s + 0.99
+    for bad in ("5+1", "0+1+2", "5+-1+2", "5+1+0", "a+b+c"):
+        with pytest.raises(SystemExit):
+            build_parser().parse_args(["--synthetic", "--revisit", bad])
+
+
 def test_run_py_with_a_depth_gap_runs_and_evaluates(tmp_path):
     from bench.run import main
 

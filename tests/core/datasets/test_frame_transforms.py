@@ -11,6 +11,7 @@ import pytest
 
 from voxfusion.core.datasets import (
     BaseCapture,
+    RevisitCapture,
     RGBDFrame,
     SlicedCapture,
     TransformedCapture,
@@ -88,6 +89,22 @@ def test_drop_depth_blanks_the_frames_of_the_gap_only():
     assert cap[2].color is not None and cap[2].index == 2  # only the depth goes
     with pytest.raises(ValidationError):
         drop_depth(_frame(), 3, 1)
+
+
+def test_revisit_capture_comes_back_with_the_clock_running_on():
+    cap = RevisitCapture(_ListCapture(8), at=6, back_to=1, frames=2, pause_s=0.5)
+    assert len(cap) == 8
+    assert [cap[i].meta["source_index"] for i in range(8)] == [0, 1, 2, 3, 4, 5, 1, 2]
+    assert [cap[i].index for i in range(8)] == list(range(8))
+    # the source frames are 1 s apart: after frame 5 (t = 5) a 0.5 s pause, then the revisit keeps its spacing
+    assert [cap[i].timestamp_s for i in range(8)] == [0, 1, 2, 3, 4, 5, 5.5, 6.5]
+    np.testing.assert_array_equal(cap[6].depth_m, _ListCapture(8)[1].depth_m)
+    for bad in ({"at": 0, "back_to": 0, "frames": 1}, {"at": 9, "back_to": 0, "frames": 1},
+                {"at": 6, "back_to": 7, "frames": 2}, {"at": 6, "back_to": 0, "frames": 0}):
+        with pytest.raises(ValidationError):
+            RevisitCapture(_ListCapture(8), **bad)
+    with pytest.raises(ValidationError):
+        RevisitCapture(_ListCapture(8), 6, 1, 2, pause_s=-1.0)
 
 
 def test_transformed_and_sliced_captures_are_lazy():
