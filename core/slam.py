@@ -250,6 +250,9 @@ class SlamSystem:
         self.retried: list[int] = []
         """Frame indices that were tracked again from other start poses after a gap (``tracking.retry_cost_factor``;
         every attempt, whether or not a retry's result was kept)."""
+        self.relocalised: list[int] = []
+        """Frame indices the retry placed from a keyframe's pose (``tracking.retry_keyframes``), a subset of
+        ``retried``."""
         self._first_good: FrameRecord | None = None  # the frame the map started with (world_axes)
         self._threads_before: tuple[int, int] | None = None  # (torch's threads, the workers') while they run
 
@@ -443,50 +446,46 @@ class SlamSystem:
         starts[:, :, :3, 3] = moves[:, None, :]
         return last @ starts.reshape(-1, 4, 4)
 
-    def _keyframe_starts(self) -> tuple[np.ndarray, list[Keyframe]]:
-        """Start poses for relocalisation (``tracking.retry_keyframes``): ``([K T, 4, 4], [K T])``, the published
-        map's keyframe poses (at most that many keyframes, spread evenly over them) each turned by
-        :meth:`_retry_turns`, and the keyframe each came from; none when off or before a map exists."""
+    def _keyframe_starts(self) -> tuple[np.ndarray, list[Keyframe], np.ndarray]:
+        """Start poses for relocalisation (``tracking.retry_keyframes``): ``(starts [K T, 4, 4], keyframes [K],
+        poses [K, 4, 4])``, the published map's keyframes (at most that many, spread evenly over them), their
+        published poses read once, and each pose turned by :meth:`_retry_turns` (start ``k T + j``: keyframe ``k``,
+        turn ``j``); none when off or before a map exists."""
         n = self.config.tracking.retry_keyframes
         snap = self.snapshot
         if n == 0 or snap is None or not snap.keyframes:
-            return np.zeros((0, 4, 4)), []
+            return np.zeros((0, 4, 4)), [], np.zeros((0, 4, 4))
         kfs = list(snap.keyframes)
         if len(kfs) > n:
             kfs = [kfs[i] for i in np.linspace(0, len(kfs) - 1, n).round().astype(int)]
+        poses = np.stack([kf.published_pose() for kf in kfs])
         rotations = self._retry_turns()
         turns = np.tile(np.eye(4), (len(rotations), 1, 1))
         turns[:, :3, :3] = rotations
-        poses = (np.stack([kf.published_pose() for kf in kfs])[:, None] @ turns[None]).reshape(-1, 4, 4)
-        return poses, [kf for kf in kfs for _ in rotations]
+        return (poses[:, None] @ turns[None]).reshape(-1, 4, 4), kfs, poses
 
     def _retry_from_other_starts(self, data: FrameData, first: TrackResult, prior: np.ndarray) -> TrackResult:
         """Track ``data`` again from the :meth:`_retry_starts` where its depth fits the map best
-        (:meth:`.tracking.Tracker.pose_costs`), best first, until one costs as usual (``tracking.retry_cost_factor``);
-        where none of the best ``retry_tracks`` does, from the best of the :meth:`_keyframe_starts` the same way, each
-        with its keyframe as the frame-to-frame terms' reference (the last tracked frame may be far from there).
+        (:meth:`.tracking.Tracker.pose_costs`), best first, until one costs as usual (``tracking.retry_cost_factor``).
         A retry replaces the first result only when it is not lost and, if the first was lost, costs as usual (a
         lost frame is not fused, a wrong pose would be), else costs under :data:`RETRY_MIN_GAIN` times the first
         (among poses that are all wrong, the lowest cost is no better a guess than the motion prior's); of those,
-        the lowest cost wins. Otherwise the first result stands, its pose the motion prior's."""
+        the lowest cost wins. Otherwise the first result stands, its pose the motion prior's.
+
+        Where no start around the last pose gives a result that costs as usual, relocalisation: the
+        :meth:`_keyframe_starts` are ranked the same way, the best turn of each keyframe kept, and the best
+        ``retry_tracks`` keyframes tracked from there against their own depth (the frame-to-frame terms'
+        reference; the last tracked frame may be far away). A result from there must cost as usual whatever the
+        first was: it may be anywhere in the map. ``relocalised`` lists the frames placed this way."""
         t0 = time.perf_counter()
         self.retried.append(first.frame_index)
         self._retried_since_good = True
-        near = self._retry_starts(prior)
-        far, far_keyframes = self._keyframe_starts()
-        starts = np.concatenate([near, far])
-        costs = self.tracker.pose_costs(data, starts)  # one batched query for both sets
-        n_tracks = self.config.tracking.retry_tracks
-        order = np.concatenate([np.argsort(costs[:len(near)], kind="stable")[:n_tracks],
-                                len(near) + np.argsort(costs[len(near):], kind="stable")[:n_tracks]])
+        cfg = self.config.tracking
+        starts = self._retry_starts(prior)
+        order = np.argsort(self.tracker.pose_costs(data, starts), kind="stable")
         best, tries, iterations = first, 0, first.iterations
-        for k in order:
-            if k < len(near):
-                again = self.tracker.track(data, starts[k], False)
-            else:
-                kf = far_keyframes[k - len(near)]
-                with self.tracker.referenced_to(kf.data, kf.published_pose()):
-                    again = self.tracker.track(data, starts[k], False)
+        for k in order[:cfg.retry_tracks]:
+            again = self.tracker.track(data, starts[k], False)
             tries += 1
             iterations += again.iterations
             acceptable = not again.lost and (self._cost_is_usual(again.loss) if first.lost
@@ -495,9 +494,29 @@ class SlamSystem:
                 best = again
             if best is not first and self._cost_is_usual(best.loss):
                 break
+        placed_at = None
+        if not (best is not first and self._cost_is_usual(best.loss)):
+            far, keyframes, kf_poses = self._keyframe_starts()
+            if len(keyframes):
+                n_turns = len(far) // len(keyframes)
+                costs = self.tracker.pose_costs(data, far).reshape(len(keyframes), n_turns)
+                turn = costs.argmin(1)  # each keyframe's best turn, then the best keyframes
+                for kk in np.argsort(costs.min(1), kind="stable")[:cfg.retry_tracks]:
+                    with self.tracker.referenced_to(keyframes[kk].data, kf_poses[kk]):
+                        again = self.tracker.track(data, far[kk * n_turns + turn[kk]], False)
+                    tries += 1
+                    iterations += again.iterations
+                    if not again.lost and self._cost_is_usual(again.loss) and (best is first
+                                                                                or again.loss < best.loss):
+                        best, placed_at = again, keyframes[kk]
+                        break
+                starts = np.concatenate([starts, far])
+        if placed_at is not None:
+            self.relocalised.append(first.frame_index)
         log.info("frame %d tracked again from %d of %d other starts: cost %.3g%s -> %s", first.frame_index,
                  tries, len(starts), first.loss, " (lost)" if first.lost else "",
-                 "kept the first" if best is first else f"{best.loss:.3g}")
+                 "kept the first" if best is first else f"{best.loss:.3g}" + (
+                     "" if placed_at is None else f", relocalised at the keyframe of frame {placed_at.data.index}"))
         return dataclasses.replace(best, iterations=iterations,
                                    time_ms=first.time_ms + (time.perf_counter() - t0) * 1e3)
 

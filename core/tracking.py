@@ -249,13 +249,15 @@ class TrackingConfig:
     """The most start poses ``retry_cost_factor`` tracks from (the best-fitting ones) around the last tracked pose,
     and again the most from ``retry_keyframes``' poses where none of those did."""
     retry_keyframes: int = 64
-    """Relocalisation: where no start pose around the last tracked one gives a usable result (``retry_cost_factor``),
-    the retry also tries the poses of up to this many keyframes of the published map (all of them, or as many spread
-    evenly over them), each turned as the last pose is (pan, tilt): a camera that comes back after a gap to a place
-    it mapped, however far it went meanwhile. Ranked with the others (one batched :meth:`Tracker.pose_costs`); the
-    best ``retry_tracks`` of them are tracked, under the same acceptance rules. 0: none. The synthetic room (seed 1),
-    frames 0-59, then after a 1 s pause frames 15-29 again (the camera 38 cm and 26 deg from where it was last
-    tracked, beyond the turns and the grid): without them every later frame stayed ~32-36 cm off."""
+    """Relocalisation: where no start pose around the last tracked one gives a result that costs as usual
+    (``retry_cost_factor``), the retry ranks the poses of up to this many keyframes of the published map (all of
+    them, or as many spread evenly over them), each turned as the last pose is (pan, tilt), keeps each keyframe's
+    best turn and tracks the best ``retry_tracks`` keyframes' against their own depth; a result from there must
+    cost as usual (it may be anywhere in the map). A camera that comes back after a gap to a place it mapped,
+    however far it went meanwhile, as long as the first frame after the gap sees it (once per gap, as every
+    retry). 0: none. The synthetic room (seed 1), frames 0-59, then after a 1 s pause frames 15-29 again (the camera
+    38 cm and 26 deg from where it was last tracked, beyond the turns and the grid): without them every later frame
+    stayed ~32-36 cm off."""
     refine_iters: int = 0
     """``sdf`` method: iterations of the render tracker run after it (0: none), with the small steps of
     ``lr_device_prior`` (it starts at the ``sdf`` tracker's pose, a few millimetres from the answer)."""

@@ -169,16 +169,18 @@ class RevisitCapture(BaseCapture):
     """
 
     def __init__(self, capture: Capture, at: int, back_to: int, frames: int, pause_s: float = 1.0) -> None:
-        if not (1 <= at <= len(capture) and 0 <= back_to and frames >= 1 and back_to + frames <= len(capture)):
-            raise ValidationError("at/back_to/frames", f"need 1 <= at <= {len(capture)}, back_to >= 0, frames >= 1 and "
-                                  f"back_to + frames <= {len(capture)}; got {at}, {back_to}, {frames}")
-        if not pause_s >= 0:
-            raise ValidationError("pause_s", f"must be >= 0, got {pause_s}")
+        if not (1 <= at <= len(capture) and 0 <= back_to < at and frames >= 1 and back_to + frames <= len(capture)):
+            raise ValidationError("at/back_to/frames", f"need 1 <= at <= {len(capture)}, 0 <= back_to < at, "
+                                  f"frames >= 1 and back_to + frames <= {len(capture)}; got {at}, {back_to}, {frames}")
+        if not pause_s > 0:
+            raise ValidationError("pause_s", f"must be > 0 (the clock runs on), got {pause_s}")
         self.capture = capture
         self.name = capture.name
         self.path = Path(capture.path)
         self._sources = list(range(at)) + list(range(back_to, back_to + frames))
-        self._at, self._back_to, self._pause_s = at, back_to, pause_s
+        self._at = at
+        # the revisit's clock: its first frame pause_s after the last first-pass frame, its own spacing after that
+        self._shift_s = capture[at - 1].timestamp_s + pause_s - capture[back_to].timestamp_s
 
     def __len__(self) -> int:
         return len(self._sources)
@@ -186,10 +188,8 @@ class RevisitCapture(BaseCapture):
     def _load(self, i: int) -> RGBDFrame:
         src = self._sources[i]
         frame = self.capture[src]
-        if i >= self._at:  # the clock runs on from the last first-pass frame
-            last = self.capture[self._at - 1].timestamp_s
-            first_back = self.capture[self._back_to].timestamp_s
-            frame = frame.with_(timestamp_s=last + self._pause_s + (frame.timestamp_s - first_back))
+        if i >= self._at:
+            frame = frame.with_(timestamp_s=frame.timestamp_s + self._shift_s)
         return frame.with_(index=i, meta={**frame.meta, "source_index": src})
 
     @property

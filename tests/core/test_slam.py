@@ -430,18 +430,19 @@ def test_a_camera_back_at_a_mapped_place_after_a_gap_is_relocalised_at_a_keyfram
         slam.process(f.with_(index=k, timestamp_s=k / 30 + (1.0 if k >= len(frames) else 0.0)))
     jump = pose_error(frames[-1].T_world_cam, back[0].T_world_cam)
     assert jump[0] > 0.35 and jump[1] > 30, jump
-    assert slam.retried == [len(frames)]
+    assert slam.retried == [len(frames)] and slam.relocalised == [len(frames)]  # placed from a keyframe's pose
     after = [pose_error(r.current_pose(), f.T_world_cam)[0] for r, f in zip(slam.records[len(frames):], back,
                                                                            strict=True)]
     assert max(after) < 0.01, after
     # the start poses: every keyframe turned as the last pose is; none with retry_keyframes=0
-    starts, sources = slam._keyframe_starts()
+    starts, keyframes, poses = slam._keyframe_starts()
     n_turns = len(slam._retry_turns())
-    assert starts.shape == (len(slam.snapshot.keyframes) * n_turns, 4, 4) and len(sources) == len(starts)
-    np.testing.assert_allclose(starts[0], slam.snapshot.keyframes[0].published_pose(), atol=1e-12)  # pan 0 first
+    assert starts.shape == (len(slam.snapshot.keyframes) * n_turns, 4, 4) and len(keyframes) == len(poses)
+    np.testing.assert_allclose(starts[::n_turns], poses, atol=1e-12)  # pan 0 first
+    np.testing.assert_allclose(poses[0], slam.snapshot.keyframes[0].published_pose(), atol=1e-12)
     slam.config = dataclasses.replace(slam.config, tracking=dataclasses.replace(slam.config.tracking,
                                                                                  retry_keyframes=2))
-    assert len(slam._keyframe_starts()[1]) == 2 * n_turns
+    assert len(slam._keyframe_starts()[1]) == 2 and len(slam._keyframe_starts()[0]) == 2 * n_turns
     slam.config = dataclasses.replace(slam.config, tracking=dataclasses.replace(slam.config.tracking,
                                                                                  retry_keyframes=0))
     assert slam._keyframe_starts()[0].shape == (0, 4, 4)

@@ -100,11 +100,13 @@ def test_revisit_capture_comes_back_with_the_clock_running_on():
     assert [cap[i].timestamp_s for i in range(8)] == [0, 1, 2, 3, 4, 5, 5.5, 6.5]
     np.testing.assert_array_equal(cap[6].depth_m, _ListCapture(8)[1].depth_m)
     for bad in ({"at": 0, "back_to": 0, "frames": 1}, {"at": 9, "back_to": 0, "frames": 1},
-                {"at": 6, "back_to": 7, "frames": 2}, {"at": 6, "back_to": 0, "frames": 0}):
+                {"at": 6, "back_to": 6, "frames": 2}, {"at": 6, "back_to": 0, "frames": 0},
+                {"at": 6, "back_to": 5, "frames": 4}):
         with pytest.raises(ValidationError):
             RevisitCapture(_ListCapture(8), **bad)
-    with pytest.raises(ValidationError):
-        RevisitCapture(_ListCapture(8), 6, 1, 2, pause_s=-1.0)
+    for pause in (0.0, -1.0):
+        with pytest.raises(ValidationError):
+            RevisitCapture(_ListCapture(8), 6, 1, 2, pause_s=pause)
 
 
 def test_transformed_and_sliced_captures_are_lazy():
