@@ -13,7 +13,7 @@ Example::
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import cv2
@@ -140,7 +140,7 @@ class SlicedCapture(BaseCapture):
         self.capture = capture
         self.name = capture.name
         self.path = Path(capture.path)
-        self._indices = range(*slice(start, stop, step).indices(len(capture)))
+        self._indices: Sequence[int] = range(*slice(start, stop, step).indices(len(capture)))
 
     def __len__(self) -> int:
         return len(self._indices)
@@ -160,12 +160,12 @@ class SlicedCapture(BaseCapture):
         return self.capture.profile
 
 
-class RevisitCapture(BaseCapture):
+class RevisitCapture(SlicedCapture):
     """The first ``at`` frames of ``capture``, then, after ``pause_s`` seconds without frames, its frames ``back_to
     .. back_to + frames - 1`` again: a camera that comes back to a place it saw (covered while its user walked back,
-    or a robot that returned), for testing relocalisation. Frames are re-indexed in order and re-stamped so that the
-    clock runs on (the revisit's frames keep their own spacing, ``pause_s`` after the last first-pass frame); each
-    keeps its source position in ``meta["source_index"]`` and its reference pose.
+    or a robot that returned), for testing relocalisation. A view like :class:`SlicedCapture` (re-indexed in order,
+    the source position in ``meta["source_index"]``, the reference pose kept), re-stamped so that the clock runs
+    on: the revisit's frames keep their own spacing, ``pause_s`` after the last first-pass frame.
     """
 
     def __init__(self, capture: Capture, at: int, back_to: int, frames: int, pause_s: float = 1.0) -> None:
@@ -174,29 +174,12 @@ class RevisitCapture(BaseCapture):
                                   f"frames >= 1 and back_to + frames <= {len(capture)}; got {at}, {back_to}, {frames}")
         if not pause_s > 0:
             raise ValidationError("pause_s", f"must be > 0 (the clock runs on), got {pause_s}")
-        self.capture = capture
-        self.name = capture.name
-        self.path = Path(capture.path)
-        self._sources = list(range(at)) + list(range(back_to, back_to + frames))
+        super().__init__(capture)
+        self._indices = [*range(at), *range(back_to, back_to + frames)]
         self._at = at
         # the revisit's clock: its first frame pause_s after the last first-pass frame, its own spacing after that
         self._shift_s = capture[at - 1].timestamp_s + pause_s - capture[back_to].timestamp_s
 
-    def __len__(self) -> int:
-        return len(self._sources)
-
     def _load(self, i: int) -> RGBDFrame:
-        src = self._sources[i]
-        frame = self.capture[src]
-        if i >= self._at:
-            frame = frame.with_(timestamp_s=frame.timestamp_s + self._shift_s)
-        return frame.with_(index=i, meta={**frame.meta, "source_index": src})
-
-    @property
-    def gt_mesh_path(self) -> Path | None:
-        return self.capture.gt_mesh_path
-
-    @property
-    def profile(self) -> CaptureProfile:
-        """The wrapped capture's profile."""
-        return self.capture.profile
+        frame = super()._load(i)
+        return frame.with_(timestamp_s=frame.timestamp_s + self._shift_s) if i >= self._at else frame
