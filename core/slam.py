@@ -144,7 +144,9 @@ class SlamStats:
     latency_ms: float
     map_version: int
     frames_retried: int = 0
-    """Frames tracked a second time from the last tracked pose (``tracking.retry_cost_factor``)."""
+    """Frames tracked again from other start poses after a gap (``tracking.retry_cost_factor``)."""
+    frames_relocalised: int = 0
+    """Of those, the frames placed from a keyframe's pose (``tracking.retry_keyframes``)."""
 
 
 @dataclass(frozen=True)
@@ -748,7 +750,8 @@ class SlamSystem:
                 keyframes=len(self.mapper.keyframes) if self.mapper else 0,
                 voxels=self.mapper.voxels.n_voxels if self.mapper else 0,
                 fps=tracked / elapsed if elapsed > 0 else 0.0, latency_ms=lat,
-                map_version=self._snapshot.version if self._snapshot else 0, frames_retried=len(self.retried))
+                map_version=self._snapshot.version if self._snapshot else 0, frames_retried=len(self.retried),
+                frames_relocalised=len(self.relocalised))
 
     def render_depth(self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int) -> RenderedImage:
         """Depth (and colour) rendered from the newest snapshot at a camera pose (AR occlusion)."""

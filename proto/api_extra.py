@@ -27,6 +27,8 @@ class SessionStatusOut(SessionStatus):
     """Tracked frames whose tracking failed (their pose is the motion model's guess; they are not fused)."""
     frames_retried: int = Field(0, ge=0)
     """Frames after a gap that were tracked again from other start poses (their first start looked wrong)."""
+    frames_relocalised: int = Field(0, ge=0)
+    """Of those, the frames placed from a keyframe's pose (a camera back at a place it mapped)."""
     worker_pid: int | None = None
     """Process id of the session's engine worker on the server (``None``: none, or engines on threads)."""
     worker_node: str | None = None

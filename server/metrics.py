@@ -158,6 +158,8 @@ _PER_SESSION = (
     ("voxfusion_session_frames_dropped_total", "counter", "Frames skipped by realtime tracking.", "frames_dropped"),
     ("voxfusion_session_frames_retried_total", "counter", "Frames tracked again from other starts after a gap.",
      "frames_retried"),
+    ("voxfusion_session_frames_relocalised_total", "counter", "Frames placed from a keyframe's pose after a gap.",
+     "frames_relocalised"),
     ("voxfusion_session_keyframes", "gauge", "Keyframes.", "keyframes"),
     ("voxfusion_session_voxels", "gauge", "Allocated voxels.", "voxels"),
     ("voxfusion_session_fps", "gauge", "Frames tracked per second.", "fps"),

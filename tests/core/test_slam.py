@@ -412,6 +412,7 @@ def test_a_wrong_start_after_a_gap_is_tracked_again_from_the_last_pose():
     assert all(np.array_equal(a, r.T_tracked) for a, r in zip(before, slam.records[:55], strict=True))
     assert [r.index for r in slam.records if r.lost] == list(range(40, 55))
     assert slam.retried == [55] and slam.stats().frames_retried == 1  # the frames before the gap were never retried
+    assert slam.relocalised == [] and slam.stats().frames_relocalised == 0  # the last pose's starts sufficed
     on = [pose_error(r.current_pose(), f.T_world_cam)[0] for r, f in zip(slam.records[after_gap], frames[after_gap],
                                                                         strict=True)]
     assert max(on) < 0.01
@@ -431,6 +432,7 @@ def test_a_camera_back_at_a_mapped_place_after_a_gap_is_relocalised_at_a_keyfram
     jump = pose_error(frames[-1].T_world_cam, back[0].T_world_cam)
     assert jump[0] > 0.35 and jump[1] > 30, jump
     assert slam.retried == [len(frames)] and slam.relocalised == [len(frames)]  # placed from a keyframe's pose
+    assert slam.stats().frames_relocalised == 1 and slam.stats().frames_retried == 1
     after = [pose_error(r.current_pose(), f.T_world_cam)[0] for r, f in zip(slam.records[len(frames):], back,
                                                                            strict=True)]
     assert max(after) < 0.01, after

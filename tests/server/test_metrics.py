@@ -99,6 +99,8 @@ def test_metrics_parse_and_label_every_route_by_its_template(server_factory, sce
     assert "voxfusion_session_voxels" in m and "voxfusion_frame_bytes" in m
     # frames tracked again after a gap (none in two frames without one)
     assert value(m, "voxfusion_session_frames_retried", "voxfusion_session_frames_retried_total", session=sid) == 0
+    assert value(m, "voxfusion_session_frames_relocalised", "voxfusion_session_frames_relocalised_total",
+                 session=sid) == 0
 
 
 def test_metrics_keep_the_api_key(server_factory):
