@@ -12,7 +12,8 @@
 #   * with --gap: only the recovery after a gap, the fast-rotation room seeds 0/1/2 with frames 40-54 without depth,
 #     both methods, and ours again without the retry (bench/results/gap_*.json); and relocalisation, the synthetic
 #     room seeds 0/1/2 with the camera back at frame 15's place after frame 59 and a 1 s pause, both methods, and
-#     ours again without keyframe start poses (bench/results/revisit_*.json).
+#     ours again without keyframe start poses, and the same on 7-Scenes (frames 0-199, then back at frame 50's
+#     place for 30 frames) (bench/results/revisit_*.json).
 # Usage: bash bench/engine_targets.sh [--quick | --heldout | --gap]   (--quick: seed 0 only, no held-out seeds;
 #   --heldout: only the held-out seeds)
 set -u
@@ -44,6 +45,12 @@ if [ "${1:-}" = "--gap" ]; then
         run "revisit_synthetic_60f_seed${s}_no_keyframes" --synthetic --frames 60 --seed "$s" --revisit 60+15+15 \
             --method voxfusion --vf-set tracking.retry_keyframes=0
     done
+    if [ -d "$DATA/sevenscenes_redkitchen" ]; then  # real depth: frames 0-199, then back at frame 50's place
+        run "revisit_sevenscenes_200f" --capture "$DATA/sevenscenes_redkitchen" --max-frames 200 --revisit 200+50+30 \
+            --method baseline voxfusion
+        run "revisit_sevenscenes_200f_no_keyframes" --capture "$DATA/sevenscenes_redkitchen" --max-frames 200 \
+            --revisit 200+50+30 --method voxfusion --vf-set tracking.retry_keyframes=0
+    fi
     exit 0
 fi
 if [ "$ONLY_HELDOUT" = 0 ]; then
