@@ -68,6 +68,8 @@ __all__ = [
 ]
 
 DEFAULT_OUT = REPO_ROOT / "bench" / "results"
+REVISIT_PAUSE_S = 1.0
+"""``--revisit``: seconds without frames before the camera is back (a gap, so the retry looks again)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -298,35 +300,37 @@ def _open(args: argparse.Namespace) -> tuple[Capture, trimesh.Trimesh | None, st
         from voxfusion.core.datasets.transforms import RevisitCapture
 
         at, back_to, length = args.revisit
-        capture = RevisitCapture(capture, at, back_to, length, pause_s=1.0)
+        capture = RevisitCapture(capture, at, back_to, length, pause_s=REVISIT_PAUSE_S)
         name += f"_revisit{at}+{back_to}+{length}"
-        desc["revisit"] = {"at": at, "back_to": back_to, "frames": length, "pause_s": 1.0}
+        desc["revisit"] = {"at": at, "back_to": back_to, "frames": length, "pause_s": REVISIT_PAUSE_S}
     return capture, gt, name, desc
 
 
 # ------------------------------------------------------------------------------------------ evaluation
 
 
-def _revisit(text: str) -> tuple[int, int, int]:
+def _plus_ints(text: str, minimums: dict[str, int], example: str) -> tuple[int, ...]:
+    """``A+B+...`` -> the integers, one per name of ``minimums`` (name -> least value), or an argparse error."""
+    try:
+        values = tuple(int(v) for v in text.split("+"))
+    except ValueError:
+        values = ()
+    if len(values) != len(minimums):
+        raise argparse.ArgumentTypeError(f"expected {'+'.join(minimums)}, e.g. {example}, got {text!r}")
+    if any(v < least for v, least in zip(values, minimums.values(), strict=True)):
+        need = ", ".join(f"{name} >= {least}" for name, least in minimums.items())
+        raise argparse.ArgumentTypeError(f"need {need}, got {text!r}")
+    return values
+
+
+def _revisit(text: str) -> tuple[int, ...]:
     """``AT+BACK+FRAMES`` -> ``(AT, BACK, FRAMES)`` (``--revisit``)."""
-    try:
-        at, back, length = (int(v) for v in text.split("+"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected AT+BACK+FRAMES, e.g. 60+15+15, got {text!r}") from None
-    if at < 1 or back < 0 or length < 1:
-        raise argparse.ArgumentTypeError(f"need AT >= 1, BACK >= 0 and FRAMES >= 1, got {text!r}")
-    return at, back, length
+    return _plus_ints(text, {"AT": 1, "BACK": 0, "FRAMES": 1}, "60+15+15")
 
 
-def _gap(text: str) -> tuple[int, int]:
+def _gap(text: str) -> tuple[int, ...]:
     """``START+FRAMES`` -> ``(START, FRAMES)`` (``--depth-gap``)."""
-    try:
-        start, length = (int(v) for v in text.split("+"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected START+FRAMES, e.g. 40+15, got {text!r}") from None
-    if start < 0 or length < 1:
-        raise argparse.ArgumentTypeError(f"need START >= 0 and FRAMES >= 1, got {text!r}")
-    return start, length
+    return _plus_ints(text, {"START": 0, "FRAMES": 1}, "40+15")
 
 
 def _cm(x: float | None) -> float | None:

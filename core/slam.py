@@ -432,6 +432,13 @@ class SlamSystem:
         axis_angles = [(0.0, p, 0.0) for p in pans] + [(step, 0.0, 0.0), (-step, 0.0, 0.0)]
         return so3_exp(torch.tensor(np.radians(axis_angles), dtype=torch.float64)).numpy()
 
+    def _turn_poses(self) -> np.ndarray:
+        """:meth:`_retry_turns` as ``[T, 4, 4]`` poses (no translation), to right-multiply a camera pose with."""
+        rotations = self._retry_turns()
+        turns = np.tile(np.eye(4), (len(rotations), 1, 1))
+        turns[:, :3, :3] = rotations
+        return turns
+
     def _retry_starts(self, prior: np.ndarray) -> np.ndarray:
         """``[K, 4, 4]`` start poses to try after a gap: the last tracked pose turned by each of :meth:`_retry_turns`
         and moved, in its camera's frame, by the translation the motion prior (``prior``) extrapolated or by an
@@ -442,9 +449,7 @@ class SlamSystem:
         n = int(round(cfg.retry_reach_m / cfg.retry_step_m))
         grid = np.arange(-n, n + 1) * cfg.retry_step_m
         moves = np.array([t_prior] + [[x, 0.0, z] for x in grid for z in grid])  # [M, 3]
-        turns = self._retry_turns()  # [T, 3, 3]
-        starts = np.tile(np.eye(4), (len(moves), len(turns), 1, 1))  # [M, T, 4, 4]
-        starts[:, :, :3, :3] = turns[None]
+        starts = np.repeat(self._turn_poses()[None], len(moves), axis=0)  # [M, T, 4, 4]
         starts[:, :, :3, 3] = moves[:, None, :]
         return last @ starts.reshape(-1, 4, 4)
 
@@ -461,10 +466,7 @@ class SlamSystem:
         if len(kfs) > n:
             kfs = [kfs[i] for i in np.linspace(0, len(kfs) - 1, n).round().astype(int)]
         poses = np.stack([kf.published_pose() for kf in kfs])
-        rotations = self._retry_turns()
-        turns = np.tile(np.eye(4), (len(rotations), 1, 1))
-        turns[:, :3, :3] = rotations
-        return (poses[:, None] @ turns[None]).reshape(-1, 4, 4), kfs, poses
+        return (poses[:, None] @ self._turn_poses()[None]).reshape(-1, 4, 4), kfs, poses
 
     def _retry_from_other_starts(self, data: FrameData, first: TrackResult, prior: np.ndarray) -> TrackResult:
         """Track ``data`` again from the :meth:`_retry_starts` where its depth fits the map best
@@ -508,8 +510,7 @@ class SlamSystem:
                         again = self.tracker.track(data, far[kk * n_turns + turn[kk]], False)
                     tries += 1
                     iterations += again.iterations
-                    if not again.lost and self._cost_is_usual(again.loss) and (best is first
-                                                                                or again.loss < best.loss):
+                    if not again.lost and self._cost_is_usual(again.loss):  # below any earlier result: none was usual
                         best, placed_at = again, keyframes[kk]
                         break
                 starts = np.concatenate([starts, far])

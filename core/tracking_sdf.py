@@ -371,6 +371,17 @@ def _huber_cost(r: torch.Tensor, k: float | torch.Tensor) -> torch.Tensor:
     return torch.where(a <= k, 0.5 * a * a, k * (a - 0.5 * k))
 
 
+def _scaled_costs(res: torch.Tensor, valid: torch.Tensor, huber: torch.Tensor, cap: torch.Tensor, scale: float
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Residuals ``res [M]`` in units of the SDF noise scale (times ``scale``, float64, 0 where not ``valid``) and
+    their Huber costs (scale ``huber``, in the residuals' units before scaling); an invalid residual costs as much
+    as one at its ``cap``, so leaving the map (or the reference) never pays. ``huber`` and ``cap``: ``[M]`` or
+    0-dim float64. The one cost rule of :func:`linearize_terms` and :func:`map_costs`."""
+    rs = torch.where(valid, res, torch.zeros_like(res)).to(torch.float64) * scale
+    k = huber * scale
+    return rs, torch.where(valid, _huber_cost(rs, k), _huber_cost(cap * scale, k))
+
+
 def solve_spd(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Solve ``A x = b`` for a small symmetric positive definite ``A [n, n]`` (``b [n]``); zeros where ``A``
     is not positive definite (a degenerate system: no step).
@@ -510,10 +521,8 @@ def linearize_terms(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: to
     scale = 1.0 / cfg.huber_m
     g_cam = torch.where(valid[:, None], g_world @ R, torch.zeros_like(g_world))
     J = torch.cat([g_cam, torch.cross(p_all, g_cam, dim=-1)], -1).to(torch.float64) * scale  # [m N, 6]
-    rs = torch.where(valid, res, torch.zeros_like(res)).to(torch.float64) * scale
+    rs, cost = _scaled_costs(res, valid, k, cap, scale)
     wgt = _huber_weight(rs, k * scale) * valid
-    # an invalid residual costs as much as one at its cap: leaving the map (or the reference) never pays
-    cost = torch.where(valid, _huber_cost(rs, k * scale), _huber_cost(cap * scale, k * scale))
     Jw = J * wgt[:, None]
     return cost.sum() / n, Jw.T @ J / n, Jw.T @ rs / n, terms
 
@@ -551,10 +560,7 @@ def map_costs(voxels: VoxelMap, decoder: SDFDecoder, p_cam: torch.Tensor, T: tor
     per_chunk = max(1, max_points // max(n, 1))
     field = NeuralField(voxels, decoder)
     p = p_cam.to(dtype)
-    scale = 1.0 / cfg.huber_m
-    # the same float64 Huber scale and cap as linearize's (huber_m times its reciprocal, not a literal 1)
-    k = torch.full((), cfg.huber_m, dtype=torch.float64, device=p.device) * scale
-    cap_cost = _huber_cost(torch.full((), cfg.max_residual_m, dtype=torch.float64, device=p.device) * scale, k)
+    huber, cap = (torch.full((), v, dtype=torch.float64, device=p.device) for v in (cfg.huber_m, cfg.max_residual_m))
     costs = []
     with torch.no_grad():
         for start in range(0, T.shape[0], per_chunk):
@@ -563,8 +569,7 @@ def map_costs(voxels: VoxelMap, decoder: SDFDecoder, p_cam: torch.Tensor, T: tor
             idx = voxels.lookup_voxels(x)
             sdf, _ = field.evaluate_unchecked(x, idx.clamp(min=0), with_color=False)
             ok = (idx >= 0) & torch.isfinite(sdf) & (sdf.abs() < cfg.max_residual_m)
-            rs = torch.where(ok, sdf, torch.zeros_like(sdf)).to(torch.float64) * scale
-            cost = torch.where(ok, _huber_cost(rs, k), cap_cost)
+            cost = _scaled_costs(sdf, ok, huber, cap, 1.0 / cfg.huber_m)[1]
             costs.append(cost.reshape(-1, n).sum(1) / n)  # as linearize's sum / n, not mean's 1 / n factor
     return torch.cat(costs)
 
