@@ -59,6 +59,7 @@ from voxfusion.core.tracking import Tracker  # noqa: E402
 
 VARIANTS: dict[str, dict[str, object]] = {
     "float32 eager (reference)": {},
+    "no CUDA graphs (eager tracker)": {"tracking.cuda_graphs": False},
     "bfloat16": {"field.precision": "bfloat16"},
     "float16": {"field.precision": "float16"},
     "compile": {"field.compile": True},
@@ -67,7 +68,9 @@ VARIANTS: dict[str, dict[str, object]] = {
     "mapping compile": {"mapping.compile": True},
 }
 """Variant name -> configuration options (``section.key``: the decoder's ``field.*``, the geometric tracker's
-``tracking.compile``, a mapping iteration's renderer and losses ``mapping.compile``)."""
+``tracking.compile`` and ``tracking.cuda_graphs``, a mapping iteration's renderer and losses ``mapping.compile``). The
+reference is eager except for the sdf solver's stages, which replay from CUDA graphs on a CUDA device (the engine's
+default); ``no CUDA graphs`` runs them eagerly too (on a CPU it is the reference)."""
 SMOKE = ["mapping.first_frame_iters=5", "mapping.iters=1", "mapping.rays_per_frame=64", "tracking.sdf_points=256",
          "tracking.sdf_iters=2", "field.sdf_hidden=16", "field.color_hidden=16", "field.geo_feature_dim=8"]
 """``--smoke`` overrides: the same code at tiny sizes."""

@@ -5,7 +5,8 @@
 # where pip works). Nothing is installed system-wide: the wheels go to a temporary folder on PYTHONPATH, and the
 # voxfusion package is this checkout's folders laid out as pyproject.toml maps them (voxfusion.core = core/, ...).
 #
-# Usage: bash bench/gpu_lease.sh OUT_DIR [gpu_suite.py options]
+# Usage: [GPU_PYTEST="TEST_PATHS"] bash bench/gpu_lease.sh OUT_DIR [gpu_suite.py options]
+#   GPU_PYTEST: run these tests with pytest first (their CUDA tests; OUT_DIR/gpu-pytest.log); then the suite
 #   writes OUT_DIR/gpu-<gpu>-lease.json (rewritten after every section, so a run cut short keeps what it
 #   measured) and OUT_DIR/gpu-lease.log. PYTHON=... picks the interpreter (default python3). With --smoke it runs the
 #   suite's CPU smoke sizes instead: the same setup, checked on a machine without CUDA.
@@ -48,6 +49,11 @@ cuda = torch.cuda.is_available()
 name = torch.cuda.get_device_name(0) if cuda else "none"
 print(f"[gpu-lease] python {sys.version.split()[0]}, torch {torch.__version__}, CUDA {torch.version.cuda}, GPU: {name}")
 EOF
+if [ -n "${GPU_PYTEST:-}" ]; then  # the CUDA tests first, e.g. GPU_PYTEST="tests/core/test_tracking_graphs.py"
+    # -c /dev/null: not pyproject.toml's pythonpath ["."], whose bare voxfusion/ would hide the layout above
+    # shellcheck disable=SC2086
+    "$PY" -P -m pytest -q -rs -c /dev/null -p no:cacheprovider $GPU_PYTEST 2>&1 | tee "$OUT/gpu-pytest.log" || true
+fi
 SIZE=(--lease)
 case " $* " in *" --smoke "*) SIZE=() ;; esac  # --smoke: the same setup checked on a machine without CUDA
 SEVEN=()

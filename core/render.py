@@ -36,6 +36,7 @@ from .voxels import VoxelMap
 
 __all__ = [
     "RenderConfig",
+    "image_chunk_rays",
     "camera_rays",
     "camera_directions",
     "VoxelHits",
@@ -448,13 +449,26 @@ class RenderedImage(NamedTuple):
 
 
 @torch.no_grad()
+def image_chunk_rays(device: torch.device) -> int:
+    """Rays per :func:`render_rays` call when rendering a whole image on ``device``. Each call costs a fixed ~450
+    operators and ~9 host read-backs (sample counts, masked field queries) whatever its size: on a GPU, where those
+    are launches and waits, a 256x192 occlusion image is one call (65536 rays: ~800 operators and 17 read-backs
+    instead of ~5400 and 108 in 12 calls of 4096; a call's samples then take up to a few hundred MB of device
+    memory); on a CPU 4096 rays keep a call's samples in cache (2-core AMD EPYC, the ``cpu`` preset's synthetic
+    room, 256x192: 0.75 s in 12 calls against 1.06 s in one)."""
+    return 4096 if device.type == "cpu" else 1 << 16
+
+
 def render_depth_image(voxel_map: VoxelMap, field: SDFField | SDFDecoder, K: torch.Tensor | np.ndarray,
                        T_world_cam: torch.Tensor | np.ndarray, width: int, height: int, config: RenderConfig,
-                       chunk: int = 4096) -> RenderedImage:
-    """Render a full depth (and colour) image in inference mode, ``chunk`` rays at a time.
+                       chunk: int | None = None) -> RenderedImage:
+    """Render a full depth (and colour) image in inference mode, ``chunk`` rays at a time (None:
+    :func:`image_chunk_rays` for the map's device).
 
     Used for AR occlusion and evaluation. ``K`` is for the ``width x height`` resolution.
     """
+    if chunk is None:
+        chunk = image_chunk_rays(voxel_map.device)
     if chunk < 1:
         raise ValidationError("chunk", f"must be >= 1, got {chunk}")
     T = _as_tensor(T_world_cam, "T_world_cam", (4, 4), voxel_map.device)

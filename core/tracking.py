@@ -41,6 +41,7 @@ from .lie import perturb_right
 from .losses import LossConfig, compute_losses
 from .optim import adam
 from .render import RenderConfig, camera_rays, render_rays
+from .tracking_graphs import SolverGraphs
 from .tracking_sdf import (
     DepthReference,
     GrayImages,
@@ -211,6 +212,11 @@ class TrackingConfig:
     6.8 ms and a session's frames ~8 ms less of ~90, but compiling took 7 s per process with torch's on-disk cache
     warm and ~30 s cold, more than a run of a few hundred frames saves (``python bench/bench_accel.py``, variant
     ``tracking compile``; ``make bench-gpu`` measures it on a GPU)."""
+    cuda_graphs: bool = True
+    """``sdf`` method on a CUDA device: replay each solver stage from CUDA graphs (:mod:`.tracking_graphs`), captured
+    once per map snapshot, instead of launching its ~340 operators per iteration one by one (the eager solver, the
+    reference, runs on a CPU, with ``compile``, and wherever capture fails, after one warning). Same operators,
+    same results."""
     retry_cost_factor: float = 3.0
     """Recovery after a gap: a frame that comes after lost frames, or ``retry_gap`` times the usual interval between
     tracked frames or more after the last tracked one, and whose tracking is lost or costs (``TrackResult.loss``)
@@ -365,6 +371,8 @@ class Tracker:
         self._reference: DepthReference | None = None
         self._images: tuple[FrameData, GrayImages] | None = None
         """The last frame whose gray images were made, and those images (:meth:`_gray_images`)."""
+        self._graphs: SolverGraphs | None = None
+        """The ``sdf`` solver's CUDA graphs (``cuda_graphs`` on a CUDA device), made with the first frame there."""
 
     def set_map(self, voxels: VoxelMap, decoder: SDFDecoder) -> None:
         """Swap in a new frozen map snapshot (a reference assignment; the tracker never waits)."""
@@ -484,11 +492,18 @@ class Tracker:
             w_photo=self._photo_weight(), huber_photo=cfg.sdf_huber_photo, w_photo_blurred=self._photo_blur_weight(),
             compile=cfg.compile)
         T0 = torch.as_tensor(T_prior, dtype=torch.float64, device=dev)
-        sol = solve_pose(voxels, decoder, levels, T0, solver, self._reference)  # None unless a term needs one
-        # the one read-back of the frame
-        T_est = nearest_rigid(sol.T.cpu().numpy())
-        cost, inlier, med, n_valid = (float(sol.cost), float(sol.inlier_fraction), float(sol.median_residual_m),
-                                      int(sol.n_valid))
+        sol = None
+        if cfg.cuda_graphs and dev.type == "cuda":
+            if self._graphs is None:
+                self._graphs = SolverGraphs(dev)
+            sol = self._graphs.solve(voxels, decoder, levels, T0, solver, self._reference)
+        if sol is None:  # on a CPU, compiled, or where capture failed
+            sol = solve_pose(voxels, decoder, levels, T0, solver, self._reference)  # None unless a term needs one
+        # the one read-back of the frame: the pose and the statistics together
+        stats = torch.stack([sol.cost, sol.inlier_fraction, sol.median_residual_m, sol.n_valid.to(torch.float64)])
+        host = torch.cat([sol.T.reshape(-1), stats.to(torch.float64)]).cpu().numpy()
+        T_est = nearest_rigid(host[:16].reshape(4, 4))
+        cost, inlier, med, n_valid = float(host[16]), float(host[17]), float(host[18]), int(host[19])
         lost, reason = False, ""
         if inlier < cfg.min_valid_fraction or n_valid < 8:
             lost, reason = True, f"too few inliers ({inlier * 100:.1f} % of {cfg.sdf_points} points)"

@@ -44,6 +44,7 @@ accepted steps), in the same information form as the data term.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -66,6 +67,18 @@ __all__ = ["SdfSolverConfig", "SdfPoints", "SdfSolution", "DepthReference", "Gra
            "linearize_terms", "pose_terms", "PoseTerms", "map_costs", "solve_spd", "solve_spd_elimination"]
 
 _GRAY = (0.299, 0.587, 0.114)
+_GRAY_WEIGHTS: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
+
+
+def gray_levels(rgb: torch.Tensor) -> torch.Tensor:
+    """Gray levels ``[...]`` of colours ``rgb [..., 3]`` in [0, 1] (ITU-R 601 luma weights). The weights are made once
+    per dtype and device, so a call copies nothing from the host (which a CUDA graph capture forbids) once the
+    first call on that device has run."""
+    key = (rgb.dtype, rgb.device)
+    w = _GRAY_WEIGHTS.get(key)
+    if w is None:
+        w = _GRAY_WEIGHTS.setdefault(key, torch.tensor(_GRAY, dtype=rgb.dtype, device=rgb.device))
+    return rgb @ w
 
 
 @dataclass(frozen=True)
@@ -224,7 +237,7 @@ def smoothed_gray(color: torch.Tensor) -> torch.Tensor:
     (edges replicated): the reference image of the photometric term, so that image noise weighs less and the
     bilinear gradient reaches a little further. (Smoothing the tracked frame's side too measured no better:
     TUM fr1 desk 0.23 / 0.23 / 0.22 cm against 0.22 / 0.22 / 0.22.)"""
-    g = color.to(torch.float32) @ torch.tensor(_GRAY, dtype=torch.float32, device=color.device)
+    g = gray_levels(color.to(torch.float32))
     return separable_filter(g, [0.25, 0.5, 0.25])
 
 
@@ -357,7 +370,7 @@ def sample_points(frame: FrameData, n: int, generator: torch.Generator | None = 
     gray = None
     if with_gray and frame.color is not None:
         rgb = frame.color.reshape(-1, 3)[flat]
-        gray = rgb @ torch.tensor(_GRAY, dtype=rgb.dtype, device=rgb.device)
+        gray = gray_levels(rgb)
     return SdfPoints(p, gray, None if blurred is None else blurred.reshape(-1)[flat])
 
 
@@ -432,6 +445,10 @@ class PoseTerms(NamedTuple):
     gf: torch.Tensor | None
     okf: torch.Tensor | None
 
+    def residuals(self) -> PoseTerms:
+        """``r`` and ``ok`` alone, the rest None (what a stage whose terms nobody reuses keeps)."""
+        return PoseTerms(self.r, None, self.ok, None, None, None, None, None)
+
     def where(self, cond: torch.Tensor, other: PoseTerms, residuals_only: bool = False) -> PoseTerms:
         """These terms where the 0-dim ``cond`` holds, else ``other``'s (on the device, no read-back);
         ``residuals_only``: ``r`` and ``ok`` alone, the rest None (what a stage whose terms nobody reuses keeps)."""
@@ -460,7 +477,7 @@ def pose_terms(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: torch.T
             loc = local_coords(voxels, x, idx)
             sdf, rgb = decoder(interpolate_unchecked(voxels, x, idx, loc), loc, with_color=True)
             grads = torch.autograd.grad(sdf.sum(), x, retain_graph=True)[0]
-            gray = rgb @ torch.tensor(_GRAY, dtype=rgb.dtype, device=rgb.device)
+            gray = gray_levels(rgb)
             g_col = torch.autograd.grad(gray.sum(), x)[0]
         gray_pred = gray.detach()
     else:  # geometry only: the field's SDF and spatial gradient in one pass, no autograd graph
@@ -615,72 +632,160 @@ def _shares_pose_terms(a: tuple[SdfPoints, SdfSolverConfig, DepthReference | Non
             == (cb.max_residual_m, cb.w_color, cb.w_frame, cb.frame_max_m))
 
 
-def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T_init: torch.Tensor,
-               cfg: SdfSolverConfig, reference: DepthReference | None = None) -> SdfSolution:
-    """Levenberg-Marquardt from ``T_init [4, 4]`` float64 over ``levels`` (coarse first; the stages of
-    :func:`_stages`). Without a ``converge_tol`` it never waits for the device; with one, once every
-    ``check_every`` iterations."""
-    dev = T_init.device
-    T_best = T_init.to(torch.float64)
-    eye = torch.eye(6, dtype=torch.float64, device=dev)
-    info = torch.tensor([cfg.prior_info[0]] * 3 + [cfg.prior_info[1]] * 3, dtype=torch.float64, device=dev)
-    xi_acc = torch.zeros(6, dtype=torch.float64, device=dev)
-    n_points = max(p.p_cam.shape[0] for p in levels)
-    r = ok = None
-    cost_best = torch.zeros((), dtype=torch.float64, device=dev)
-    iterations = 0
+class SolverStage(NamedTuple):
+    """One stage of :func:`solve_pose` (:func:`solver_stages`): its ``points``, ``options`` and ``reference``, the
+    convergence tolerance ``tol`` of its steps (m / rad), whether it starts from the previous stage's terms
+    (``shares``: :func:`_shares_pose_terms`; never when compiled, so that every evaluation runs the compiled graph)
+    and whether it keeps every term of its best pose for the next stage (``keeps``), else ``r`` and ``ok`` alone."""
+
+    points: SdfPoints
+    options: SdfSolverConfig
+    reference: DepthReference | None
+    tol: float
+    shares: bool
+    keeps: bool
+
+
+def solver_stages(levels: list[SdfPoints], cfg: SdfSolverConfig, reference: DepthReference | None
+                  ) -> list[SolverStage]:
+    """:func:`_stages` with each stage's tolerance and how it hands its terms on (:class:`SolverStage`)."""
     stages = _stages(levels, cfg, reference)
-    lin = COMPILED_LINEARIZE if cfg.compile else linearize_terms
-    # which stage starts from the previous one's terms (the blurred stage, then the finest: the same points and
-    # reference geometry); none when compiled, so that every evaluation runs the compiled graph
     shares = [not cfg.compile and k > 0 and _shares_pose_terms(stages[k - 1], stages[k]) for k in range(len(stages))]
-    carried: PoseTerms | None = None
-    for stage, (pts, lcfg, lref) in enumerate(stages):
-        finest = stage == len(stages) - 1
+    out = []
+    for k, (pts, lcfg, lref) in enumerate(stages):
+        finest = k == len(stages) - 1
         tol = cfg.converge_tol if finest or cfg.coarse_converge_tol is None else cfg.coarse_converge_tol
+        out.append(SolverStage(pts, lcfg, lref, tol, shares[k], k + 1 < len(stages) and shares[k + 1]))
+    return out
 
-        # the prior's weight is per point of the data term's mean, so it does not depend on N
-        def evaluate(T: torch.Tensor, xi: torch.Tensor, terms: PoseTerms | None = None, pts: SdfPoints = pts,
-                     lcfg: SdfSolverConfig = lcfg, lref: DepthReference | None = lref
-                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, PoseTerms]:
-            cost, H, b, terms = (lin(voxels, decoder, pts, T, lcfg, lref) if terms is None
-                                 else linearize_terms(voxels, decoder, pts, T, lcfg, lref, terms))
-            H = H + torch.diag(info) / n_points
-            b = b + info * xi / n_points
-            cost = cost + 0.5 * (info * xi * xi).sum() / n_points
-            return cost, H, b, terms
 
-        # where the previous stage ended, its field and frame-to-frame terms are this one's (only gray levels differ)
-        cost_best, H_best, b_best, terms_best = evaluate(T_best, xi_acc, carried if shares[stage] else None)
-        keep_all = stage + 1 < len(stages) and shares[stage + 1]
-        lam = torch.full((), cfg.lambda_init, dtype=torch.float64, device=dev)
-        for it in range(1, cfg.iters + 1):
-            A = H_best + lam * (torch.diag(torch.diagonal(H_best)) + 1e-9 * eye)
-            delta = solve_spd(A, -b_best)
-            delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
-            # converged: the next step would move the pose less than the tolerance (not worth an evaluation)
-            if cfg.converge_tol > 0 and (it - 1) % cfg.check_every == 0 \
-                    and float(delta.abs().max()) < tol:
-                break
-            T_c = perturb_right(T_best, delta)
-            xi_c = xi_acc + delta
-            cost_c, H_c, b_c, terms_c = evaluate(T_c, xi_c)
-            better = cost_c < cost_best
-            T_best = torch.where(better, T_c, T_best)
-            xi_acc = torch.where(better, xi_c, xi_acc)
-            cost_best = torch.where(better, cost_c, cost_best)
-            H_best = torch.where(better, H_c, H_best)
-            b_best = torch.where(better, b_c, b_best)
-            terms_best = terms_c.where(better, terms_best, residuals_only=not keep_all)
-            lam = torch.where(better, (lam * 0.3).clamp(min=1e-7), lam * 5.0)
-            iterations += 1
-        carried = terms_best
-        r, ok = terms_best.r, terms_best.ok
-    assert r is not None and ok is not None
+class SolverPrior(NamedTuple):
+    """The device prior as the solver adds it (:func:`_evaluate`): ``info [6]`` float64 (``prior_info`` per axis),
+    divided by ``n_points`` (the largest level's point count: the prior's weight is per point of the data term's
+    mean, so it does not depend on N); ``eye [6, 6]`` float64, the damping's regulariser."""
+
+    info: torch.Tensor
+    n_points: int
+    eye: torch.Tensor
+
+
+def solver_prior(cfg: SdfSolverConfig, levels: list[SdfPoints], device: torch.device) -> SolverPrior:
+    """:class:`SolverPrior` of ``cfg.prior_info`` for these levels, on ``device``."""
+    info = torch.tensor([cfg.prior_info[0]] * 3 + [cfg.prior_info[1]] * 3, dtype=torch.float64, device=device)
+    return SolverPrior(info, max(p.p_cam.shape[0] for p in levels), torch.eye(6, dtype=torch.float64, device=device))
+
+
+class LMState(NamedTuple):
+    """A solver stage's Levenberg-Marquardt state, all device tensors: the best pose ``T [4, 4]`` float64 so far and
+    the accumulated correction ``xi [6]`` (the device prior's argument: the sum of accepted steps), that pose's cost
+    (0-dim), normal equations ``H [6, 6]``, ``b [6]`` (float64, the prior included) and terms, the damping ``lam``
+    (0-dim) and the step ``delta [6]`` proposed from them: what the next iteration evaluates, and what the
+    convergence test reads. :func:`stage_start` makes one, :func:`stage_step` advances it."""
+
+    T: torch.Tensor
+    xi: torch.Tensor
+    cost: torch.Tensor
+    H: torch.Tensor
+    b: torch.Tensor
+    lam: torch.Tensor
+    delta: torch.Tensor
+    terms: PoseTerms
+
+
+def _propose(H: torch.Tensor, b: torch.Tensor, lam: torch.Tensor, eye: torch.Tensor) -> torch.Tensor:
+    """The damped step ``-(H + lam (diag(H) + 1e-9 I))^-1 b`` ``[6]`` (0 where that is not finite)."""
+    A = H + lam * (torch.diag(torch.diagonal(H)) + 1e-9 * eye)
+    return torch.nan_to_num(solve_spd(A, -b), nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def _evaluate(voxels: VoxelMap, decoder: SDFDecoder, stage: SolverStage, prior: SolverPrior, T: torch.Tensor,
+              xi: torch.Tensor, terms: PoseTerms | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, PoseTerms]:
+    """The stage's cost and normal equations at ``T`` (:func:`linearize_terms`, compiled with ``compile``) plus the
+    device prior at ``xi``; ``terms``: the stage's terms at ``T`` already known (the previous stage's)."""
+    cfg = stage.options
+    if terms is None:
+        lin = COMPILED_LINEARIZE if cfg.compile else linearize_terms
+        cost, H, b, terms = lin(voxels, decoder, stage.points, T, cfg, stage.reference)
+    else:
+        cost, H, b, terms = linearize_terms(voxels, decoder, stage.points, T, cfg, stage.reference, terms)
+    H = H + torch.diag(prior.info) / prior.n_points
+    b = b + prior.info * xi / prior.n_points
+    cost = cost + 0.5 * (prior.info * xi * xi).sum() / prior.n_points
+    return cost, H, b, terms
+
+
+def stage_start(voxels: VoxelMap, decoder: SDFDecoder, stage: SolverStage, prior: SolverPrior, T: torch.Tensor,
+                xi: torch.Tensor, carried: PoseTerms | None = None) -> LMState:
+    """A stage's :class:`LMState` at pose ``T [4, 4]`` (float64) with correction ``xi [6]``: one evaluation (none of
+    the field when the stage ``shares`` and ``carried`` holds the previous stage's terms there) and the first step.
+    Fresh tensors throughout (``T`` and ``xi`` are copied). No host synchronisation."""
+    cost, H, b, terms = _evaluate(voxels, decoder, stage, prior, T, xi, carried if stage.shares else None)
+    if not stage.keeps:
+        terms = terms.residuals()
+    lam = torch.full((), stage.options.lambda_init, dtype=torch.float64, device=cost.device)
+    return LMState(T.clone(), xi.clone(), cost, H, b, lam, _propose(H, b, lam, prior.eye), terms)
+
+
+def stage_step(voxels: VoxelMap, decoder: SDFDecoder, stage: SolverStage, prior: SolverPrior, state: LMState
+               ) -> LMState:
+    """One Levenberg-Marquardt iteration: evaluate ``state.delta``; keep it where it lowers the cost (and lower
+    the damping), else keep the state (and raise it); propose the next step. A new :class:`LMState` of the same
+    structure; no host synchronisation."""
+    T_c = perturb_right(state.T, state.delta)
+    xi_c = state.xi + state.delta
+    cost_c, H_c, b_c, terms_c = _evaluate(voxels, decoder, stage, prior, T_c, xi_c)
+    better = cost_c < state.cost
+    H = torch.where(better, H_c, state.H)
+    b = torch.where(better, b_c, state.b)
+    lam = torch.where(better, (state.lam * 0.3).clamp(min=1e-7), state.lam * 5.0)
+    return LMState(torch.where(better, T_c, state.T), torch.where(better, xi_c, state.xi),
+                   torch.where(better, cost_c, state.cost), H, b, lam, _propose(H, b, lam, prior.eye),
+                   terms_c.where(better, state.terms, residuals_only=not stage.keeps))
+
+
+def iterate_stage(state: LMState, stage: SolverStage, step: Callable[[LMState], LMState]) -> tuple[LMState, int]:
+    """Run ``step`` (:func:`stage_step`, or its replay) up to ``iters`` times from ``state``, ending earlier once the
+    proposed step is below the stage's tolerance (read back every ``check_every`` iterations). Returns the final
+    state and the iterations run."""
+    cfg = stage.options
+    n = 0
+    for it in range(1, cfg.iters + 1):
+        # converged: the next step would move the pose less than the tolerance (not worth an evaluation)
+        if cfg.converge_tol > 0 and (it - 1) % cfg.check_every == 0 and float(state.delta.abs().max()) < stage.tol:
+            break
+        state = step(state)
+        n += 1
+    return state, n
+
+
+def solution(state: LMState, cfg: SdfSolverConfig, iterations: int) -> SdfSolution:
+    """The :class:`SdfSolution` of the last stage's final ``state`` (its residual statistics; fresh tensors)."""
+    r, ok = state.terms.r, state.terms.ok
     a = r.abs()
     inlier = (ok & (a < cfg.inlier_m)).to(torch.float64).mean()
     inside_abs = torch.where(ok, a, torch.full_like(a, float("inf")))
     n_valid = ok.sum()
     mid = ((n_valid - 1).clamp(min=0) // 2).reshape(1)
     med = torch.where(n_valid > 0, inside_abs.sort().values.gather(0, mid)[0], a.new_zeros(()))
-    return SdfSolution(T_best, cost_best, inlier, med, n_valid, iterations)
+    return SdfSolution(state.T.clone(), state.cost.clone(), inlier, med, n_valid, iterations)
+
+
+def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T_init: torch.Tensor,
+               cfg: SdfSolverConfig, reference: DepthReference | None = None) -> SdfSolution:
+    """Levenberg-Marquardt from ``T_init [4, 4]`` float64 over ``levels`` (coarse first; the stages of
+    :func:`solver_stages`), eager. Without a ``converge_tol`` it never waits for the device; with one, once every
+    ``check_every`` iterations. :class:`~.tracking_graphs.SolverGraphs` replays the same stages from CUDA graphs."""
+    prior = solver_prior(cfg, levels, T_init.device)
+    T = T_init.to(torch.float64)
+    xi = torch.zeros(6, dtype=torch.float64, device=T.device)
+    state: LMState | None = None
+    iterations = 0
+    for stage in solver_stages(levels, cfg, reference):
+        # where the previous stage ended, its field and frame-to-frame terms are this one's (only gray levels differ)
+        state = stage_start(voxels, decoder, stage, prior, T, xi, None if state is None else state.terms)
+        state, n = iterate_stage(state, stage, lambda s, st=stage: stage_step(voxels, decoder, st, prior, s))
+        T, xi = state.T, state.xi
+        iterations += n
+    assert state is not None
+    return solution(state, cfg, iterations)

@@ -17,6 +17,7 @@ from voxfusion.core.render import (
     RenderConfig,
     VoxelHits,
     camera_rays,
+    image_chunk_rays,
     intersect_voxels,
     intersect_voxels_reference,
     render_depth_image,
@@ -330,6 +331,19 @@ def tilted_plane_sdf(p, _idx):
 def sphere_sdf(p, _idx):
     centre = torch.tensor([0.1, -0.05, 2.2], dtype=p.dtype)
     return (p - centre).norm(dim=-1) - 0.5, torch.full((p.shape[0], 3), 0.25, dtype=p.dtype)
+
+
+def test_an_image_renders_the_same_in_one_call_or_in_chunks():
+    """The device's chunk (one call of 65536 rays on a GPU, 4096 on a CPU) changes the calls, not the image."""
+    cfg = RenderConfig(step_ratio=0.05, max_distance_m=5.0)
+    T = torch.eye(4)
+    vm = _band_map(sphere_sdf, 0.2, 1.0, 0.35)
+    assert image_chunk_rays(torch.device("cpu")) == 4096 and image_chunk_rays(torch.device("cuda")) == 65536
+    whole = render_depth_image(vm, sphere_sdf, K_TEST, T, 32, 24, cfg)  # 768 rays: one call
+    parts = render_depth_image(vm, sphere_sdf, K_TEST, T, 32, 24, cfg, chunk=100)
+    assert whole.valid.any()
+    for a, b in zip(whole, parts, strict=True):
+        assert torch.equal(a, b)
 
 
 def test_rendered_depth_of_analytic_planes_and_sphere_is_within_millimetres():

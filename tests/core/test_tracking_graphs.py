@@ -1,0 +1,212 @@
+"""The sdf tracker's solver stages as CUDA graphs (core/tracking_graphs.py) against the eager solver.
+
+On a CPU: the stages (start and step, every term on) never wait for the host and never copy from it, which is what
+capture requires. With CUDA: the replayed solution is the eager one, a new map snapshot is captured again, and a
+stage that cannot be captured leaves the tracker eager after one warning.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from torch.overrides import TorchFunctionMode
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from voxfusion.core import tracking_graphs
+from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
+from voxfusion.core.framedata import frame_to_device
+from voxfusion.core.lie import se3_exp
+from voxfusion.core.reconstruct import make_mapper
+from voxfusion.core.slam_config import load_preset
+from voxfusion.core.tracking import Tracker, TrackingConfig
+from voxfusion.core.tracking_sdf import (
+    SdfSolverConfig,
+    sample_points,
+    solve_pose,
+    solver_prior,
+    solver_stages,
+    stage_start,
+    stage_step,
+)
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+
+TINY = ["mapping.map_every=1", "mapping.rays_per_frame=192", "mapping.iters=8", "mapping.first_frame_iters=40",
+        "field.sdf_hidden=64", "field.color_hidden=64"]
+SYNC_OPS = {"_local_scalar_dense", "nonzero", "nonzero_static", "masked_select", "_unique", "_unique2", "unique_dim",
+            "unique_consecutive", "repeat_interleave", "is_nonzero", "equal", "item"}
+HOST_DATA = {torch.tensor, torch.as_tensor, torch.from_numpy, torch.Tensor.new_tensor}
+EVERY_TERM = SdfSolverConfig(iters=3, w_color=0.2, w_frame=1.0, w_photo=0.1, w_photo_blurred=0.3,
+                             prior_info=(50.0, 20.0))
+
+
+def build_room(device: str):
+    cap = SyntheticCapture(SyntheticConfig(n_frames=9, width=96, height=72, seed=5))
+    cfg = load_preset("cpu-small", [f"device={device}", *TINY])
+    mapper = make_mapper(cfg)
+    for f in cap.frames(0, 6):
+        mapper.integrate(frame_to_device(f, device), f.T_world_cam)
+    return cap, cfg, mapper
+
+
+def perturbed(T: np.ndarray) -> np.ndarray:
+    xi = torch.tensor([0.02, -0.015, 0.01, np.deg2rad(1.5), np.deg2rad(-1.0), np.deg2rad(0.8)], dtype=torch.float64)
+    return T @ se3_exp(xi).numpy()
+
+
+def solver_inputs(cap, cfg, mapper, index: int, device: str, seed: int = 3, snapshot=None):
+    """Two levels of a frame's points with every gray level, and a tracker on ``snapshot`` (default: a new one of
+    the mapper's map) holding the previous frame as the reference (blurred image too)."""
+    tr = Tracker(TrackingConfig(method="sdf", sdf_w_photo=0.1, sdf_w_photo_blur=0.3), cfg.render, use_color=True)
+    tr.set_map(*(snapshot or (mapper.voxels.snapshot(), mapper.decoder)))
+    tr.remember(frame_to_device(cap[index - 1], device), cap[index - 1].T_world_cam)
+    frame = frame_to_device(cap[index], device)
+    images = tr._gray_images(frame)
+    gen = torch.Generator(device=device).manual_seed(seed)
+    finest = sample_points(frame, 512, gen, with_gray=True, blurred=images.blurred)
+    return tr, [finest.prefix(128), finest]
+
+
+class HostWaits(TorchDispatchMode):
+    """Records the operators that make the host wait for the device (or read a device value)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[str] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
+        name = func._overloadpacket.__name__
+        masks = name in ("index", "index_put", "index_put_") and any(
+            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else ()))
+        if name in SYNC_OPS or masks:  # a boolean mask as an index is a nonzero inside the kernel
+            self.seen.append(str(func))
+        return func(*args, **(kwargs or {}))
+
+
+class HostData(TorchFunctionMode):
+    """Records tensors made from host data (a host-to-device copy on a GPU)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: list[str] = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
+        if func in HOST_DATA:
+            self.seen.append(getattr(func, "__name__", str(func)))
+        return func(*args, **(kwargs or {}))
+
+
+def test_the_detectors_see_what_they_look_for():
+    x = torch.ones(3)
+    with HostWaits() as waits, HostData() as data:
+        float(x.sum())
+        x[x > 0]
+        torch.tensor([1.0, 2.0])
+    assert any("_local_scalar_dense" in s for s in waits.seen) and any("index" in s for s in waits.seen)
+    assert data.seen == ["tensor"]
+
+
+def test_solver_stages_never_wait_for_the_host_nor_copy_from_it():
+    cap, cfg, mapper = build_room("cpu")
+    tr, levels = solver_inputs(cap, cfg, mapper, 6, "cpu")
+    ref = tr._reference
+    stages = solver_stages(levels, EVERY_TERM, ref)
+    assert len(stages) == 3 and stages[2].shares and stages[1].keeps  # coarse, blurred, finest sharing its terms
+    prior = solver_prior(EVERY_TERM, levels, torch.device("cpu"))
+    T0 = torch.as_tensor(perturbed(cap[6].T_world_cam))
+    xi0 = torch.zeros(6, dtype=torch.float64)
+
+    def run_stages() -> None:
+        state = None
+        for stage in stages:
+            T, xi = (T0, xi0) if state is None else (state.T, state.xi)
+            state = stage_start(tr.voxels, tr.decoder, stage, prior, T, xi, None if state is None else state.terms)
+            for _ in range(2):
+                state = stage_step(tr.voxels, tr.decoder, stage, prior, state)
+
+    run_stages()  # first use: constants made once per device (what the graphs' warm-up does)
+    with HostWaits() as waits, HostData() as data:
+        run_stages()
+    assert waits.seen == [] and data.seen == []
+
+
+def solve_both(tracker: Tracker, levels, T0: torch.Tensor, cfg: SdfSolverConfig, graphs):
+    eager = solve_pose(tracker.voxels, tracker.decoder, levels, T0, cfg, tracker._reference)
+    replayed = graphs.solve(tracker.voxels, tracker.decoder, levels, T0, cfg, tracker._reference)
+    return eager, replayed
+
+
+def assert_same_solution(eager, replayed) -> None:
+    assert replayed is not None
+    assert replayed.iterations == eager.iterations
+    torch.testing.assert_close(replayed.T, eager.T, rtol=0, atol=1e-9)
+    torch.testing.assert_close(replayed.cost, eager.cost, rtol=1e-9, atol=0)
+    torch.testing.assert_close(replayed.inlier_fraction, eager.inlier_fraction, rtol=0, atol=0)
+    assert int(replayed.n_valid) == int(eager.n_valid)
+
+
+@cuda
+def test_replayed_stages_give_the_eager_solution():
+    cap, cfg, mapper = build_room("cuda")
+    graphs = tracking_graphs.SolverGraphs(torch.device("cuda"))
+    solver = replace(EVERY_TERM, iters=4, converge_tol=3e-4, coarse_converge_tol=3e-3, check_every=2)
+    snapshot = (mapper.voxels.snapshot(), mapper.decoder)
+    for index in (6, 7):  # two frames on one snapshot, one capture: the second copies its inputs into the graphs
+        tr, levels = solver_inputs(cap, cfg, mapper, index, "cuda", seed=index, snapshot=snapshot)
+        T0 = torch.as_tensor(perturbed(cap[index].T_world_cam), device="cuda")
+        eager, replayed = solve_both(tr, levels, T0, solver, graphs)
+        assert_same_solution(eager, replayed)
+        assert graphs.captures == 1 and not graphs.failed
+    # a device prior on this frame: the same graphs, the prior's information copied in
+    eager, replayed = solve_both(tr, levels, T0, replace(solver, prior_info=(400.0, 100.0)), graphs)
+    assert_same_solution(eager, replayed)
+    assert graphs.captures == 1
+    # a new snapshot (a mapping round): captured again
+    mapper.optimize(2)
+    tr.set_map(mapper.voxels.snapshot(), mapper.decoder)
+    eager, replayed = solve_both(tr, levels, T0, solver, graphs)
+    assert_same_solution(eager, replayed)
+    assert graphs.captures == 2
+
+
+@cuda
+def test_tracker_with_graphs_tracks_as_the_eager_tracker():
+    cap, cfg, mapper = build_room("cuda")
+    poses = {}
+    for graphs in (True, False):
+        tr = Tracker(TrackingConfig(method="sdf", cuda_graphs=graphs), cfg.render, use_color=True)
+        tr.set_map(mapper.voxels.snapshot(), mapper.decoder)
+        tr.remember(frame_to_device(cap[5], "cuda"), cap[5].T_world_cam)
+        res = tr.track(frame_to_device(cap[6], "cuda"), perturbed(cap[6].T_world_cam))
+        assert not res.lost, res.reason
+        assert (tr._graphs is not None) == graphs
+        poses[graphs] = res.T_world_cam
+    np.testing.assert_allclose(poses[True], poses[False], atol=1e-9, rtol=0)
+
+
+@cuda
+def test_a_stage_that_cannot_be_captured_leaves_the_tracker_eager(monkeypatch, caplog):
+    cap, cfg, mapper = build_room("cuda")
+    tr, levels = solver_inputs(cap, cfg, mapper, 6, "cuda")
+    T0 = torch.as_tensor(perturbed(cap[6].T_world_cam), device="cuda")
+    real_step = tracking_graphs.stage_step
+
+    def reads_back(voxels, decoder, stage, prior, state):  # noqa: ANN001, ANN202 - a host read-back: not capturable
+        if float(state.cost) < 0:
+            raise AssertionError("unreachable")
+        return real_step(voxels, decoder, stage, prior, state)
+
+    monkeypatch.setattr(tracking_graphs, "stage_step", reads_back)
+    graphs = tracking_graphs.SolverGraphs(torch.device("cuda"))
+    with caplog.at_level(logging.WARNING, logger="voxfusion.tracking"):
+        assert graphs.solve(tr.voxels, tr.decoder, levels, T0, EVERY_TERM, tr._reference) is None
+        assert graphs.solve(tr.voxels, tr.decoder, levels, T0, EVERY_TERM, tr._reference) is None
+    assert graphs.failed
+    assert len([r for r in caplog.records if "cuda_graphs" in r.getMessage()]) == 1
+    # the eager solver still works on the same device afterwards
+    sol = solve_pose(tr.voxels, tr.decoder, levels, T0, EVERY_TERM, tr._reference)
+    assert torch.isfinite(sol.T).all()
