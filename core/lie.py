@@ -60,8 +60,9 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
     V = eye + B[..., None, None] * K + C[..., None, None] * KK
     t = (V @ rho[..., None])[..., 0]
     top = torch.cat([R, t[..., None]], -1)
-    bottom = torch.zeros(xi.shape[:-1] + (1, 4), dtype=xi.dtype, device=xi.device)
-    bottom[..., 0, 3] = 1.0
+    # [0, 0, 0, 1] from fills (a scalar written by indexing is a host-to-device copy, which graph capture refuses)
+    bottom = torch.cat([torch.zeros(xi.shape[:-1] + (1, 3), dtype=xi.dtype, device=xi.device),
+                        torch.ones(xi.shape[:-1] + (1, 1), dtype=xi.dtype, device=xi.device)], -1)
     return torch.cat([top, bottom], -2)
 
 

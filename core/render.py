@@ -448,7 +448,6 @@ class RenderedImage(NamedTuple):
     valid: torch.Tensor
 
 
-@torch.no_grad()
 def image_chunk_rays(device: torch.device) -> int:
     """Rays per :func:`render_rays` call when rendering a whole image on ``device``. Each call costs a fixed ~450
     operators and ~9 host read-backs (sample counts, masked field queries) whatever its size: on a GPU, where those
@@ -459,6 +458,7 @@ def image_chunk_rays(device: torch.device) -> int:
     return 4096 if device.type == "cpu" else 1 << 16
 
 
+@torch.no_grad()
 def render_depth_image(voxel_map: VoxelMap, field: SDFField | SDFDecoder, K: torch.Tensor | np.ndarray,
                        T_world_cam: torch.Tensor | np.ndarray, width: int, height: int, config: RenderConfig,
                        chunk: int | None = None) -> RenderedImage:

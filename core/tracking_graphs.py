@@ -11,10 +11,12 @@ start (:func:`~.tracking_sdf.stage_start`) and one Levenberg-Marquardt iteration
 frame's inputs (the points of each level, the frame-to-frame reference, the start pose). A frame then copies its
 inputs into those buffers and replays: the same loop as the eager :func:`~.tracking_sdf.solve_pose`
 (:func:`~.tracking_sdf.iterate_stage`: the convergence test reads the proposed step back every ``check_every``
-iterations), the same operators, so the same results. A graph holds the map snapshot's tensors, so a new snapshot
-(a mapping round) is captured again; so is a change of shapes or options. Capture uses the low-level API
-(``CUDAGraph.capture_begin``, thread-local capture mode, a stream of its own) so that it neither synchronises
-the device nor empties the allocator's cache under a mapping thread running beside it.
+iterations), the same operators, so the same results. The graphs read a copy of the map snapshot
+(:class:`StaticMap`): a new snapshot of the same structure (a mapping round that allocated no voxel) is copied into
+it; one that grew, or a change of input shapes or options, is captured again (~74 ms of host time per capture on an
+H100 machine at the paper preset). Capture uses the low-level API (``CUDAGraph.capture_begin``, thread-local capture
+mode, a stream of its own) so that it neither synchronises the device nor empties the allocator's cache under a
+mapping thread running beside it.
 
 Anything that fails while capturing or replaying (an operator that cannot be captured, a driver refusal) is
 logged once at WARNING and the tracker stays eager (:func:`~.tracking_sdf.solve_pose`) for the rest of the
@@ -24,11 +26,11 @@ the stages never wait for the host or copy from it (what capture forbids).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 
 import torch
 
@@ -52,13 +54,18 @@ from .voxels import VoxelMap
 
 log = logging.getLogger("voxfusion.tracking")
 
-__all__ = ["SolverGraphs"]
+__all__ = ["SolverGraphs", "CudaGraphRecorder", "record_eagerly", "Recorder", "StaticMap", "map_signature",
+           "MAP_TENSORS"]
 
 
 def _state_tensors(state: LMState) -> list[torch.Tensor]:
     """Every tensor of ``state`` in a fixed order (its terms' None fields skipped)."""
     *head, terms = state
     return [*head, *(t for t in terms if t is not None)]
+
+
+def _point_tensors(pts: SdfPoints) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
+    return pts.p_cam, pts.gray, pts.gray_blurred
 
 
 def _optional_clone(t: torch.Tensor | None) -> torch.Tensor | None:
@@ -70,7 +77,7 @@ def _signature(t: torch.Tensor | None) -> tuple | None:
 
 
 def _points_signature(pts: SdfPoints) -> tuple:
-    return tuple(_signature(t) for t in (pts.p_cam, pts.gray, pts.gray_blurred))
+    return tuple(_signature(t) for t in _point_tensors(pts))
 
 
 def _reference_signature(ref: DepthReference | None) -> tuple | None:
@@ -84,36 +91,130 @@ _REFERENCE_INPUTS = ("depth_padded", "K", "T_ref_world", "gray", "gray_blurred")
 image width and the baseline, which the capture's key holds)."""
 
 
-@contextmanager
-def _capturing(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream) -> Iterator[None]:
-    """Record the block's kernels into ``graph`` on ``stream`` (after the current stream's work; the current stream
-    waits for it after). Unlike ``torch.cuda.graph`` it neither synchronises the device nor empties the cache."""
-    current = torch.cuda.current_stream(stream.device)
-    stream.wait_stream(current)
-    with torch.cuda.stream(stream):
-        graph.capture_begin(capture_error_mode="thread_local")
-        try:
-            yield
-        except BaseException:
+Recorder = Callable[[Callable[[], LMState | None]], tuple[LMState | None, Callable[[], None]]]
+"""Records a block: ``record(fn) -> (fn's output, replay)``; after ``replay()`` the output's tensors hold what ``fn``
+would return on the inputs' current values. :class:`CudaGraphRecorder` on a GPU; :func:`record_eagerly` (``fn`` run
+again at each replay) is its CPU stand-in, for tests of everything around the graphs."""
+
+
+class CudaGraphRecorder:
+    """A :data:`Recorder` of CUDA graphs captured on ``stream`` (after the current stream's work; the current stream
+    waits for it after), in thread-local capture mode. Unlike ``torch.cuda.graph`` it neither synchronises the
+    device nor empties the allocator's cache, which would stall a mapping thread running beside it."""
+
+    def __init__(self, stream: torch.cuda.Stream) -> None:
+        self.stream = stream
+
+    def __call__(self, fn: Callable[[], LMState | None]) -> tuple[LMState | None, Callable[[], None]]:
+        graph = torch.cuda.CUDAGraph()
+        current = torch.cuda.current_stream(self.stream.device)
+        self.stream.wait_stream(current)
+        with torch.cuda.stream(self.stream):
+            graph.capture_begin(capture_error_mode="thread_local")
             try:
-                graph.capture_end()
-            except Exception:  # noqa: BLE001 - the capture is broken already; the block's error is the one to report
-                pass
-            raise
-        graph.capture_end()
-    current.wait_stream(stream)
+                out = fn()
+            except BaseException:
+                try:
+                    graph.capture_end()
+                except Exception:  # noqa: BLE001 - the capture is broken already; fn's error is the one to report
+                    pass
+                raise
+            graph.capture_end()
+        current.wait_stream(self.stream)
+        return out, graph.replay
+
+    def warm_up(self, fn: Callable[[], None]) -> None:
+        """Run ``fn`` eagerly on the capture stream: lazy initialisations (library handles, their workspaces on this
+        stream) happen outside any capture."""
+        current = torch.cuda.current_stream(self.stream.device)
+        self.stream.wait_stream(current)
+        with torch.cuda.stream(self.stream):
+            fn()
+        current.wait_stream(self.stream)
+
+
+def record_eagerly(fn: Callable[[], LMState | None]) -> tuple[LMState | None, Callable[[], None]]:
+    """The CPU stand-in :data:`Recorder`: ``fn`` runs now, and again at each replay, its new output copied into the
+    first one's tensors (what a graph replay does to its static outputs)."""
+    out = fn()
+
+    def replay() -> None:
+        new = fn()
+        if out is not None and new is not None:
+            _copy_state(out, new)
+
+    return out, replay
+
+
+def _copy_state(dst: LMState, src: LMState) -> None:
+    for d, t in zip(_state_tensors(dst), _state_tensors(src), strict=True):
+        d.copy_(t)
+
+
+MAP_TENSORS = ("embeddings", "_voxel_coords", "_voxel_vertex_ids", "_sorted_voxel_codes", "_voxel_perm",
+               "_voxel_active")
+"""The :class:`~.voxels.VoxelMap` tensors the solver's stages read, besides its dense index grids (the tests run the
+stages on a map whose other tensors hold garbage): what :class:`StaticMap` copies."""
+
+
+class StaticMap:
+    """A copy of a map snapshot (``voxels``, ``decoder``) whose tensors stay where they are: the graphs read these,
+    and a later snapshot of the same structure (:attr:`signature`: the same tensor shapes, index grids and settings;
+    a mapping round that allocated nothing) is copied into them (:meth:`load`) instead of being captured again."""
+
+    def __init__(self, voxels: VoxelMap, decoder: SDFDecoder) -> None:
+        voxels.index_grid()  # built before capture (a snapshot has it already): building it reads sizes back
+        self.signature = map_signature(voxels, decoder)
+        static = object.__new__(type(voxels))
+        static.__dict__.update(voxels.__dict__)
+        for name in MAP_TENSORS:
+            t = getattr(voxels, name)
+            setattr(static, name, torch.nn.Parameter(t.detach().clone(), requires_grad=False)
+                    if isinstance(t, torch.nn.Parameter) else t.clone())
+        static._grids = {level: dataclasses.replace(g, table=g.table.clone()) for level, g in voxels._grids.items()}
+        self.voxels = static
+        self.decoder = copy.deepcopy(decoder)
+        self._state = self.decoder.state_dict(keep_vars=True)
+        self._source: tuple[VoxelMap, SDFDecoder, dict] = (voxels, decoder, dict(voxels._grids))
+
+    @torch.no_grad()
+    def load(self, voxels: VoxelMap, decoder: SDFDecoder) -> None:
+        """Copy ``voxels`` and ``decoder`` (of this :attr:`signature`) in; nothing when they are the ones loaded."""
+        src_voxels, src_decoder, src_grids = self._source
+        if voxels is src_voxels and decoder is src_decoder:
+            return
+        for name in MAP_TENSORS:
+            getattr(self.voxels, name).copy_(getattr(voxels, name))
+        for level, grid in voxels._grids.items():
+            if grid is not src_grids.get(level):  # snapshots share a grid until the map changes
+                self.voxels._grids[level].table.copy_(grid.table)
+        for name, value in decoder.state_dict(keep_vars=True).items():
+            self._state[name].copy_(value)
+        self._source = (voxels, decoder, dict(voxels._grids))
+
+
+def map_signature(voxels: VoxelMap, decoder: SDFDecoder) -> tuple:
+    """What a capture depends on besides the values: the map's settings (its Python scalars), the shapes of the
+    tensors the stages read (:data:`MAP_TENSORS`) and of its index grids (with their Python-int geometry, which the
+    lookups bake in), and the decoder's class, configuration and parameter shapes."""
+    scalars = tuple(sorted((k, v) for k, v in voxels.__dict__.items() if isinstance(v, (bool, int, float, str))))
+    grids = tuple(sorted((level, g.origin_xyz, g.shape, g.level, g.border, _signature(g.table))
+                         for level, g in voxels._grids.items()))
+    params = tuple((k, _signature(v)) for k, v in decoder.state_dict(keep_vars=True).items())
+    return (type(voxels), scalars, tuple(_signature(getattr(voxels, n)) for n in MAP_TENSORS), grids,
+            type(decoder), repr(decoder.config), params)
 
 
 class _GraphSet:
-    """The captured stages of one map snapshot and one input signature, with their static inputs and states."""
+    """The recorded stages of one map snapshot and one input signature, with their static inputs and states."""
 
     def __init__(self, key: tuple, voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints],
                  T_init: torch.Tensor, cfg: SdfSolverConfig, reference: DepthReference | None,
-                 stream: torch.cuda.Stream, warm_up: bool) -> None:
+                 record: Recorder, warm_up: Callable[[Callable[[], None]], None] | None) -> None:
         self.key = key
-        self.voxels, self.decoder = voxels, decoder  # held: the graphs read their tensors
-        self.levels = [SdfPoints(p.p_cam.clone(), _optional_clone(p.gray), _optional_clone(p.gray_blurred))
-                       for p in levels]
+        self.map = StaticMap(voxels, decoder)
+        voxels, decoder = self.voxels, self.decoder = self.map.voxels, self.map.decoder  # what the graphs read
+        self.levels = [SdfPoints(*(_optional_clone(t) for t in _point_tensors(p))) for p in levels]
         self.reference = None if reference is None else dataclasses.replace(
             reference, **{f: _optional_clone(getattr(reference, f)) for f in _REFERENCE_INPUTS},
             offsets=reference.offsets.clone())
@@ -122,38 +223,41 @@ class _GraphSet:
         self.prior_info = cfg.prior_info
         self.prior: SolverPrior = solver_prior(cfg, self.levels, self.T0.device)
         self.stages = solver_stages(self.levels, cfg, self.reference)
-        voxels.index_grid()  # built before capture (a snapshot has it already): building it reads sizes back
-        if warm_up:  # lazy initialisations (library handles, workspaces) happen outside any capture
-            stream.wait_stream(torch.cuda.current_stream(stream.device))
-            with torch.cuda.stream(stream):
-                state = None
-                for stage in self.stages:
-                    state = self._start(stage, state)
-                    state = stage_step(voxels, decoder, stage, self.prior, state)
-            torch.cuda.current_stream(stream.device).wait_stream(stream)
+        if warm_up is not None:
+            warm_up(self._run_once)
         self.states: list[LMState] = []
-        self.graphs: list[tuple[torch.cuda.CUDAGraph, torch.cuda.CUDAGraph]] = []
+        self.replays: list[tuple[Callable[[], None], Callable[[], None]]] = []
         for stage in self.stages:
-            g_start, g_step = torch.cuda.CUDAGraph(), torch.cuda.CUDAGraph()
-            with _capturing(g_start, stream):
-                state = self._start(stage, self.states[-1] if self.states else None)
-            with _capturing(g_step, stream):
-                new = stage_step(voxels, decoder, stage, self.prior, state)
-                for dst, src in zip(_state_tensors(state), _state_tensors(new), strict=True):
-                    dst.copy_(src)
+            previous = self.states[-1] if self.states else None
+            state, replay_start = record(lambda st=stage, prev=previous: self._start(st, prev))
+            assert state is not None
+
+            def step(st=stage, state=state) -> None:  # noqa: ANN001 - the new state written over the old one
+                _copy_state(state, stage_step(voxels, decoder, st, self.prior, state))
+
+            _, replay_step = record(step)
             self.states.append(state)
-            self.graphs.append((g_start, g_step))
+            self.replays.append((replay_start, replay_step))
+
+    def _run_once(self) -> None:
+        """Each stage's start and one step, eagerly (the warm-up)."""
+        state = None
+        for stage in self.stages:
+            state = self._start(stage, state)
+            state = stage_step(self.voxels, self.decoder, stage, self.prior, state)
 
     def _start(self, stage, previous: LMState | None) -> LMState:  # noqa: ANN001 - a SolverStage
         T, xi = (self.T0, self.xi0) if previous is None else (previous.T, previous.xi)
         return stage_start(self.voxels, self.decoder, stage, self.prior, T, xi,
                            None if previous is None else previous.terms)
 
-    def run(self, levels: list[SdfPoints], T_init: torch.Tensor, cfg: SdfSolverConfig,
-            reference: DepthReference | None) -> SdfSolution:
-        """Copy this frame's inputs into the static buffers and replay the stages."""
+    def run(self, voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T_init: torch.Tensor,
+            cfg: SdfSolverConfig, reference: DepthReference | None) -> SdfSolution:
+        """Copy this frame's inputs (and the snapshot, when it is another one of the same structure) into the static
+        buffers and replay the stages."""
+        self.map.load(voxels, decoder)
         for static, pts in zip(self.levels, levels, strict=True):
-            for dst, src in zip(static, (pts.p_cam, pts.gray, pts.gray_blurred), strict=True):
+            for dst, src in zip(_point_tensors(static), _point_tensors(pts), strict=True):
                 if dst is not None:
                     dst.copy_(src)
         if reference is not None:
@@ -166,9 +270,9 @@ class _GraphSet:
             self.prior.info.copy_(solver_prior(cfg, self.levels, self.T0.device).info)
             self.prior_info = cfg.prior_info
         iterations = 0
-        for stage, state, (g_start, g_step) in zip(self.stages, self.states, self.graphs, strict=True):
-            g_start.replay()
-            state, n = iterate_stage(state, stage, lambda s, g=g_step: (g.replay(), s)[1])
+        for stage, state, (replay_start, replay_step) in zip(self.stages, self.states, self.replays, strict=True):
+            replay_start()
+            state, n = iterate_stage(state, stage, lambda s, replay=replay_step: (replay(), s)[1])
             iterations += n
         return solution(self.states[-1], cfg, iterations)
 
@@ -177,20 +281,28 @@ class SolverGraphs:
     """:func:`~.tracking_sdf.solve_pose` replayed from CUDA graphs (see the module docstring); one per tracker.
 
     Args:
-        device: the CUDA device of the maps it will be given.
+        device: the device of the maps it will be given (CUDA).
+        record: how blocks are recorded (:data:`Recorder`); None: CUDA graphs on a stream of this object's own
+            (:class:`CudaGraphRecorder`, warmed up before its first capture). Tests pass :func:`record_eagerly`.
 
     :meth:`solve` returns None where the eager solver must run instead: ``cfg.compile`` (the compiled solver is
     not captured), or after a failure (logged once; :attr:`failed`). :attr:`captures` counts the graph sets built
-    (one per map snapshot and input signature) and :attr:`capture_s` the host seconds they took (benchmarks).
+    (one per map structure and input signature) and :attr:`capture_s` the host seconds they took (benchmarks).
     """
 
-    def __init__(self, device: torch.device) -> None:
+    def __init__(self, device: torch.device, record: Recorder | None = None) -> None:
         self.device = device
-        self.stream = torch.cuda.Stream(device)
+        self._warm_up: Callable[[Callable[[], None]], None] | None = None
+        if record is None:
+            recorder = CudaGraphRecorder(torch.cuda.Stream(device))
+            record, self._warm_up = recorder, recorder.warm_up
+        self._record = record
         self.failed = False
         self.captures = 0
         self.capture_s = 0.0
         self._set: _GraphSet | None = None
+        self._map_source: tuple[VoxelMap, SDFDecoder, tuple] | None = None
+        """The snapshot last given and its :func:`map_signature` (computed once per snapshot)."""
 
     def solve(self, voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T_init: torch.Tensor,
               cfg: SdfSolverConfig, reference: DepthReference | None = None) -> SdfSolution | None:
@@ -198,17 +310,19 @@ class SolverGraphs:
         first use), or None (run the eager solver)."""
         if self.failed or cfg.compile:
             return None
-        key = (id(voxels), id(decoder), dataclasses.replace(cfg, prior_info=(0.0, 0.0)),
-               tuple(_points_signature(p) for p in levels), _reference_signature(reference), _signature(T_init))
         try:
+            if self._map_source is None or voxels is not self._map_source[0] or decoder is not self._map_source[1]:
+                self._map_source = (voxels, decoder, map_signature(voxels, decoder))  # a new snapshot
+            key = (self._map_source[2], dataclasses.replace(cfg, prior_info=(0.0, 0.0)),
+                   tuple(_points_signature(p) for p in levels), _reference_signature(reference), _signature(T_init))
             if self._set is None or self._set.key != key:
                 self._set = None  # the old graphs' memory goes back before the new ones take theirs
                 t0 = time.perf_counter()
-                self._set = _GraphSet(key, voxels, decoder, levels, T_init, cfg, reference, self.stream,
-                                      warm_up=self.captures == 0)
+                self._set = _GraphSet(key, voxels, decoder, levels, T_init, cfg, reference, self._record,
+                                      self._warm_up if self.captures == 0 else None)
                 self.captures += 1
                 self.capture_s += time.perf_counter() - t0
-            return self._set.run(levels, T_init, cfg, reference)
+            return self._set.run(voxels, decoder, levels, T_init, cfg, reference)
         except VoxFusionError:
             raise  # bad input, not the graphs' failure
         except Exception as e:  # noqa: BLE001 - capture or replay refused: warn once, stay eager
@@ -216,5 +330,5 @@ class SolverGraphs:
             log.warning("tracking.cuda_graphs: CUDA graph capture or replay failed (%s: %s); tracking eagerly",
                         type(e).__name__, first_line)
             self.failed = True
-            self._set = None
+            self._set = self._map_source = None
             return None
