@@ -204,7 +204,7 @@ class RealtimeResult:
     peak_rss_mb: float | None = None
     """Capacity workers (process isolation) only: the worker's own peak resident memory."""
     graph_captures: int | None = None
-    """The tracker's CUDA graph sets captured during the whole session (one per map snapshot; None without them)."""
+    """The tracker's CUDA graph sets captured during the whole session (one per map structure; None without them)."""
     graph_capture_ms: float | None = None
     """Host milliseconds those captures took (part of the tracking thread's time)."""
 

@@ -51,11 +51,12 @@ from .tracking_sdf import (
     stage_step,
 )
 from .voxels import VoxelMap
+from .voxels.index_grid import VoxelIndexGrid
 
 log = logging.getLogger("voxfusion.tracking")
 
 __all__ = ["SolverGraphs", "CudaGraphRecorder", "record_eagerly", "Recorder", "StaticMap", "map_signature",
-           "MAP_TENSORS"]
+           "MAP_TENSORS", "OOM_BACKOFF_FRAMES"]
 
 
 def _state_tensors(state: LMState) -> list[torch.Tensor]:
@@ -153,55 +154,64 @@ def _copy_state(dst: LMState, src: LMState) -> None:
 
 MAP_TENSORS = ("embeddings", "_voxel_coords", "_voxel_vertex_ids", "_sorted_voxel_codes", "_voxel_perm",
                "_voxel_active")
-"""The :class:`~.voxels.VoxelMap` tensors the solver's stages read, besides its dense index grids (the tests run the
+"""The :class:`~.voxels.VoxelMap` tensors the solver's stages read, besides its level-0 index grid (the tests run the
 stages on a map whose other tensors hold garbage): what :class:`StaticMap` copies."""
 
 
+def _level0_grid(voxels: VoxelMap) -> VoxelIndexGrid | None:
+    """The dense index grid the stages' lookups use (None over the map's grid budget: sorted-code lookups)."""
+    return voxels.index_grid()  # a snapshot has it built already; the first build reads sizes back (never in capture)
+
+
+def _map_tensors(voxels: VoxelMap, decoder: SDFDecoder) -> list[torch.Tensor | None]:
+    """What a capture reads of a map, in a fixed order: :data:`MAP_TENSORS`, the level-0 grid's table (None without
+    a grid) and the decoder's parameters and buffers."""
+    grid = _level0_grid(voxels)
+    return [*(getattr(voxels, n) for n in MAP_TENSORS), None if grid is None else grid.table,
+            *decoder.state_dict(keep_vars=True).values()]
+
+
 class StaticMap:
-    """A copy of a map snapshot (``voxels``, ``decoder``) whose tensors stay where they are: the graphs read these,
-    and a later snapshot of the same structure (:attr:`signature`: the same tensor shapes, index grids and settings;
-    a mapping round that allocated nothing) is copied into them (:meth:`load`) instead of being captured again."""
+    """A copy of a map snapshot (``voxels``, ``decoder``) whose tensors stay where they are: the graphs read these.
+    :meth:`load` copies a map of the same :func:`map_signature` in (a later snapshot after a mapping round that
+    allocated nothing, or the same one changed in place: each tensor is copied when it is another tensor or its
+    version counter moved), instead of a new capture."""
 
     def __init__(self, voxels: VoxelMap, decoder: SDFDecoder) -> None:
-        voxels.index_grid()  # built before capture (a snapshot has it already): building it reads sizes back
-        self.signature = map_signature(voxels, decoder)
         static = object.__new__(type(voxels))
-        static.__dict__.update(voxels.__dict__)
+        static.__dict__.update(voxels.__dict__)  # its other tensors are never read by the stages (MAP_TENSORS)
         for name in MAP_TENSORS:
             t = getattr(voxels, name)
             setattr(static, name, torch.nn.Parameter(t.detach().clone(), requires_grad=False)
                     if isinstance(t, torch.nn.Parameter) else t.clone())
-        static._grids = {level: dataclasses.replace(g, table=g.table.clone()) for level, g in voxels._grids.items()}
+        grid = _level0_grid(voxels)
+        static._grids = {0: None if grid is None else dataclasses.replace(grid, table=grid.table.clone())}
         self.voxels = static
         self.decoder = copy.deepcopy(decoder)
-        self._state = self.decoder.state_dict(keep_vars=True)
-        self._source: tuple[VoxelMap, SDFDecoder, dict] = (voxels, decoder, dict(voxels._grids))
+        self._targets = _map_tensors(static, self.decoder)
+        self._loaded = [(t, None if t is None else t._version) for t in _map_tensors(voxels, decoder)]
 
     @torch.no_grad()
     def load(self, voxels: VoxelMap, decoder: SDFDecoder) -> None:
-        """Copy ``voxels`` and ``decoder`` (of this :attr:`signature`) in; nothing when they are the ones loaded."""
-        src_voxels, src_decoder, src_grids = self._source
-        if voxels is src_voxels and decoder is src_decoder:
-            return
-        for name in MAP_TENSORS:
-            getattr(self.voxels, name).copy_(getattr(voxels, name))
-        for level, grid in voxels._grids.items():
-            if grid is not src_grids.get(level):  # snapshots share a grid until the map changes
-                self.voxels._grids[level].table.copy_(grid.table)
-        for name, value in decoder.state_dict(keep_vars=True).items():
-            self._state[name].copy_(value)
-        self._source = (voxels, decoder, dict(voxels._grids))
+        """Copy in what differs from what was last copied (``voxels`` and ``decoder`` of this signature)."""
+        for k, (dst, src) in enumerate(zip(self._targets, _map_tensors(voxels, decoder), strict=True)):
+            if src is None or dst is None:
+                continue
+            loaded, version = self._loaded[k]
+            if src is not loaded or src._version != version:  # snapshots share their index tables until they change
+                dst.copy_(src)
+                self._loaded[k] = (src, src._version)
 
 
 def map_signature(voxels: VoxelMap, decoder: SDFDecoder) -> tuple:
     """What a capture depends on besides the values: the map's settings (its Python scalars), the shapes of the
-    tensors the stages read (:data:`MAP_TENSORS`) and of its index grids (with their Python-int geometry, which the
-    lookups bake in), and the decoder's class, configuration and parameter shapes."""
+    tensors the stages read (:data:`MAP_TENSORS`) and of its level-0 index grid (with its Python-int geometry, which
+    the lookups bake in), and the decoder's class, configuration and parameter shapes."""
     scalars = tuple(sorted((k, v) for k, v in voxels.__dict__.items() if isinstance(v, (bool, int, float, str))))
-    grids = tuple(sorted((level, g.origin_xyz, g.shape, g.level, g.border, _signature(g.table))
-                         for level, g in voxels._grids.items()))
+    grid = _level0_grid(voxels)
+    grid_sig = None if grid is None else (grid.origin_xyz, grid.shape, grid.level, grid.border, _signature(grid.table))
     params = tuple((k, _signature(v)) for k, v in decoder.state_dict(keep_vars=True).items())
-    return (type(voxels), scalars, tuple(_signature(getattr(voxels, n)) for n in MAP_TENSORS), grids,
+    return (type(voxels), scalars, tuple(_signature(getattr(voxels, n)) for n in MAP_TENSORS), grid_sig,
             type(decoder), repr(decoder.config), params)
 
 
@@ -213,7 +223,7 @@ class _GraphSet:
                  record: Recorder, warm_up: Callable[[Callable[[], None]], None] | None) -> None:
         self.key = key
         self.map = StaticMap(voxels, decoder)
-        voxels, decoder = self.voxels, self.decoder = self.map.voxels, self.map.decoder  # what the graphs read
+        self.voxels, self.decoder = self.map.voxels, self.map.decoder  # what the graphs read
         self.levels = [SdfPoints(*(_optional_clone(t) for t in _point_tensors(p))) for p in levels]
         self.reference = None if reference is None else dataclasses.replace(
             reference, **{f: _optional_clone(getattr(reference, f)) for f in _REFERENCE_INPUTS},
@@ -233,7 +243,7 @@ class _GraphSet:
             assert state is not None
 
             def step(st=stage, state=state) -> None:  # noqa: ANN001 - the new state written over the old one
-                _copy_state(state, stage_step(voxels, decoder, st, self.prior, state))
+                _copy_state(state, stage_step(self.voxels, self.decoder, st, self.prior, state))
 
             _, replay_step = record(step)
             self.states.append(state)
@@ -272,63 +282,84 @@ class _GraphSet:
         iterations = 0
         for stage, state, (replay_start, replay_step) in zip(self.stages, self.states, self.replays, strict=True):
             replay_start()
-            state, n = iterate_stage(state, stage, lambda s, replay=replay_step: (replay(), s)[1])
+
+            def step(s: LMState, replay: Callable[[], None] = replay_step) -> LMState:
+                replay()  # writes the new state over s (the stage's static state)
+                return s
+
+            state, n = iterate_stage(state, stage, step)
             iterations += n
         return solution(self.states[-1], cfg, iterations)
+
+
+OOM_BACKOFF_FRAMES = 30
+"""After running out of device memory while capturing, the solves (frames) that run eagerly before another try."""
 
 
 class SolverGraphs:
     """:func:`~.tracking_sdf.solve_pose` replayed from CUDA graphs (see the module docstring); one per tracker.
 
     Args:
-        device: the device of the maps it will be given (CUDA).
+        device: the CUDA device of the maps it will be given (its capture stream's).
         record: how blocks are recorded (:data:`Recorder`); None: CUDA graphs on a stream of this object's own
-            (:class:`CudaGraphRecorder`, warmed up before its first capture). Tests pass :func:`record_eagerly`.
+            (:class:`CudaGraphRecorder`, warmed up before the first capture of each input signature). Tests pass
+            :func:`record_eagerly`.
 
     :meth:`solve` returns None where the eager solver must run instead: ``cfg.compile`` (the compiled solver is
-    not captured), or after a failure (logged once; :attr:`failed`). :attr:`captures` counts the graph sets built
-    (one per map structure and input signature) and :attr:`capture_s` the host seconds they took (benchmarks).
+    not captured); for :data:`OOM_BACKOFF_FRAMES` solves after the device ran out of memory while capturing (logged;
+    then it tries again); after any other failure, for good (logged once; :attr:`failed`). :attr:`captures` counts
+    the graph sets built (one per map structure and input signature) and :attr:`capture_s` the host seconds they
+    took (benchmarks).
     """
 
     def __init__(self, device: torch.device, record: Recorder | None = None) -> None:
-        self.device = device
         self._warm_up: Callable[[Callable[[], None]], None] | None = None
         if record is None:
             recorder = CudaGraphRecorder(torch.cuda.Stream(device))
             record, self._warm_up = recorder, recorder.warm_up
         self._record = record
+        self._warmed: set[tuple] = set()
+        """Input signatures (the key without the map's) whose code paths ran eagerly on the capture stream."""
+        self._backoff = 0
         self.failed = False
         self.captures = 0
         self.capture_s = 0.0
         self._set: _GraphSet | None = None
-        self._map_source: tuple[VoxelMap, SDFDecoder, tuple] | None = None
-        """The snapshot last given and its :func:`map_signature` (computed once per snapshot)."""
 
     def solve(self, voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T_init: torch.Tensor,
               cfg: SdfSolverConfig, reference: DepthReference | None = None) -> SdfSolution | None:
-        """:func:`~.tracking_sdf.solve_pose`'s solution from the graphs of this snapshot and signature (captured on
-        first use), or None (run the eager solver)."""
+        """:func:`~.tracking_sdf.solve_pose`'s solution from the graphs of this map structure and input signature
+        (captured on first use), or None (run the eager solver)."""
         if self.failed or cfg.compile:
             return None
+        if self._backoff > 0:
+            self._backoff -= 1
+            return None
         try:
-            if self._map_source is None or voxels is not self._map_source[0] or decoder is not self._map_source[1]:
-                self._map_source = (voxels, decoder, map_signature(voxels, decoder))  # a new snapshot
-            key = (self._map_source[2], dataclasses.replace(cfg, prior_info=(0.0, 0.0)),
-                   tuple(_points_signature(p) for p in levels), _reference_signature(reference), _signature(T_init))
+            inputs = (dataclasses.replace(cfg, prior_info=(0.0, 0.0)), tuple(_points_signature(p) for p in levels),
+                      _reference_signature(reference), _signature(T_init))
+            key = (map_signature(voxels, decoder), *inputs)
             if self._set is None or self._set.key != key:
                 self._set = None  # the old graphs' memory goes back before the new ones take theirs
                 t0 = time.perf_counter()
-                self._set = _GraphSet(key, voxels, decoder, levels, T_init, cfg, reference, self._record,
-                                      self._warm_up if self.captures == 0 else None)
+                warm_up = self._warm_up if inputs not in self._warmed else None
+                self._set = _GraphSet(key, voxels, decoder, levels, T_init, cfg, reference, self._record, warm_up)
+                self._warmed.add(inputs)
                 self.captures += 1
                 self.capture_s += time.perf_counter() - t0
             return self._set.run(voxels, decoder, levels, T_init, cfg, reference)
         except VoxFusionError:
             raise  # bad input, not the graphs' failure
+        except torch.OutOfMemoryError:  # another session or the mapping thread holds the memory now: later
+            self._set = None
+            self._backoff = OOM_BACKOFF_FRAMES
+            log.warning("tracking.cuda_graphs: out of device memory while capturing; tracking eagerly for %d frames",
+                        OOM_BACKOFF_FRAMES)
+            return None
         except Exception as e:  # noqa: BLE001 - capture or replay refused: warn once, stay eager
             first_line = str(e).splitlines()[0] if str(e) else ""
             log.warning("tracking.cuda_graphs: CUDA graph capture or replay failed (%s: %s); tracking eagerly",
                         type(e).__name__, first_line)
             self.failed = True
-            self._set = self._map_source = None
+            self._set = None
             return None

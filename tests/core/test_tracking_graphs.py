@@ -17,7 +17,7 @@ import torch
 from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from voxfusion.core import tracking_graphs
+from voxfusion.core import tracking_graphs, tracking_sdf
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.lie import se3_exp
@@ -116,7 +116,11 @@ def test_the_detectors_see_what_they_look_for():
     assert any("lift_fresh" in s for s in waits.seen)
 
 
-def test_solver_stages_never_wait_for_the_host_nor_copy_from_it():
+@pytest.mark.parametrize("solver", ["cpu", "gpu"])
+def test_solver_stages_never_wait_for_the_host_nor_copy_from_it(solver, monkeypatch):
+    """Every term on; the 6x6 solve as on a CPU (Cholesky) and as on a GPU (elimination, what the graphs record)."""
+    if solver == "gpu":
+        monkeypatch.setattr(tracking_sdf, "solve_spd", tracking_sdf.solve_spd_elimination)
     cap, cfg, mapper = build_room("cpu")
     tr, levels = solver_inputs(cap, cfg, mapper, 6, "cpu")
     ref = tr._reference
@@ -195,6 +199,55 @@ def test_replayed_stages_give_the_eager_solution(device):
     eager = solve_pose(tr.voxels, tr.decoder, levels, T0, solver, None)
     assert_same_solution(eager, graphs.solve(tr.voxels, tr.decoder, levels, T0, solver, None), exact=device == "cpu")
     assert graphs.captures == 3 and not graphs.failed
+
+
+def test_a_map_without_a_dense_grid_and_a_decoder_changed_in_place_replay_as_eager():
+    """Sorted-code lookups (a map over its grid budget has no dense grid), and a snapshot's decoder changed in place
+    after the capture (its parameters' version counters move): the graphs see what the eager solver sees."""
+    cap, cfg, mapper = build_room("cpu")
+    mapper.voxels.dense_grid_max_cells = 0
+    snapshot = (mapper.voxels.snapshot(), copy.deepcopy(mapper.decoder))
+    assert snapshot[0].index_grid() is None
+    tr, levels = solver_inputs(cap, cfg, mapper, 6, "cpu", snapshot=snapshot)
+    T0 = torch.as_tensor(perturbed(cap[6].T_world_cam))
+    graphs = tracking_graphs.SolverGraphs(torch.device("cpu"), record=tracking_graphs.record_eagerly)
+    assert_same_solution(*solve_both(tr, levels, T0, EVERY_TERM, graphs), exact=True)
+    with torch.no_grad():
+        for p in tr.decoder.parameters():
+            p.mul_(1.05)
+    eager, replayed = solve_both(tr, levels, T0, EVERY_TERM, graphs)
+    assert_same_solution(eager, replayed, exact=True)
+    assert graphs.captures == 1 and not graphs.failed
+
+
+def test_a_failed_capture_leaves_graphs_off_and_running_out_of_memory_only_for_a_while(caplog):
+    cap, cfg, mapper = build_room("cpu")
+    tr, levels = solver_inputs(cap, cfg, mapper, 6, "cpu")
+    T0 = torch.as_tensor(perturbed(cap[6].T_world_cam))
+    calls = []
+
+    def out_of_memory(fn):  # noqa: ANN001, ANN202
+        calls.append(1)
+        raise torch.OutOfMemoryError("CUDA out of memory (a stand-in)")
+
+    graphs = tracking_graphs.SolverGraphs(torch.device("cpu"), record=out_of_memory)
+    with caplog.at_level(logging.WARNING, logger="voxfusion.tracking"):
+        for _ in range(tracking_graphs.OOM_BACKOFF_FRAMES + 2):
+            assert graphs.solve(tr.voxels, tr.decoder, levels, T0, EVERY_TERM, tr._reference) is None
+    assert not graphs.failed and len(calls) == 2  # tried, backed off for OOM_BACKOFF_FRAMES solves, tried again
+    assert sum("out of device memory" in r.getMessage() for r in caplog.records) == 2
+
+    def refused(fn):  # noqa: ANN001, ANN202
+        calls.append(1)
+        raise RuntimeError("operation not permitted when stream is capturing")
+
+    graphs = tracking_graphs.SolverGraphs(torch.device("cpu"), record=refused)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="voxfusion.tracking"):
+        for _ in range(3):
+            assert graphs.solve(tr.voxels, tr.decoder, levels, T0, EVERY_TERM, tr._reference) is None
+    assert graphs.failed and len(calls) == 3  # one attempt, then eager for good
+    assert sum("capture or replay failed" in r.getMessage() for r in caplog.records) == 1
 
 
 def test_the_stages_read_only_the_map_tensors_the_graphs_copy():
