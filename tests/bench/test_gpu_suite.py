@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from bench import bench_accel, gpu_suite
+from bench import bench_accel, gpu_profile, gpu_suite
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 
 
@@ -221,3 +221,9 @@ def test_bench_accel_times_each_mapping_path_on_one_map(tmp_path: Path, monkeypa
     assert set(result["ms_per_iter"]) == set(paths) and len(paths) == 2
     assert all(v > 0 for v in result["ms_per_iter"].values()) and result["machine"]["cpu_model"]
     assert all(len(v) == result["rounds"] for v in result["ms_per_iter_all"].values())
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal without CUDA")
+def test_gpu_profile_refuses_plainly_without_cuda(capsys):
+    assert gpu_profile.main([]) == 2
+    assert "needs a CUDA device" in capsys.readouterr().err
