@@ -12,11 +12,13 @@ frame's inputs (the points of each level, the frame-to-frame reference, the star
 inputs into those buffers and replays: the same loop as the eager :func:`~.tracking_sdf.solve_pose`
 (:func:`~.tracking_sdf.iterate_stage`: the convergence test reads the proposed step back every ``check_every``
 iterations), the same operators, so the same results. The graphs read a copy of the map snapshot
-(:class:`StaticMap`): a new snapshot of the same structure (a mapping round that allocated no voxel) is copied into
-it; one that grew, or a change of input shapes or options, is captured again (~74 ms of host time per capture on an
-H100 machine at the paper preset). Capture uses the low-level API (``CUDAGraph.capture_begin``, thread-local capture
-mode, a stream of its own) so that it neither synchronises the device nor empties the allocator's cache under a
-mapping thread running beside it.
+(:class:`StaticMap`, with spare rows for voxels the map allocates): a new snapshot of the same structure is copied into
+it; a map that outgrew its spare rows or its index grid's box, or a change of input shapes or options, is captured
+again (~74 ms of host time per capture on an H100 machine at the paper preset; ``python
+bench/bench_map_structure.py``: 9 and 4 captures in 200 mapping rounds of the synthetic room and 7-Scenes, none
+while revisiting, against 71 and 73 without spare rows). Capture uses the low-level API
+(``CUDAGraph.capture_begin``, thread-local capture mode, a stream of its own) so that it neither synchronises the
+device nor empties the allocator's cache under a mapping thread running beside it.
 
 Anything that fails while capturing or replaying (an operator that cannot be captured, a driver refusal) is
 logged once at WARNING and the tracker stays eager (:func:`~.tracking_sdf.solve_pose`) for the rest of the
@@ -56,7 +58,7 @@ from .voxels.index_grid import VoxelIndexGrid
 log = logging.getLogger("voxfusion.tracking")
 
 __all__ = ["SolverGraphs", "CudaGraphRecorder", "record_eagerly", "Recorder", "StaticMap", "map_signature",
-           "MAP_TENSORS", "OOM_BACKOFF_FRAMES"]
+           "MAP_TENSORS", "GRID_MAP_TENSORS", "MIN_CAPACITY_ROWS", "OOM_BACKOFF_FRAMES"]
 
 
 def _state_tensors(state: LMState) -> list[torch.Tensor]:
@@ -156,6 +158,13 @@ MAP_TENSORS = ("embeddings", "_voxel_coords", "_voxel_vertex_ids", "_sorted_voxe
                "_voxel_active")
 """The :class:`~.voxels.VoxelMap` tensors the solver's stages read, besides its level-0 index grid (the tests run the
 stages on a map whose other tensors hold garbage): what :class:`StaticMap` copies."""
+GRID_MAP_TENSORS = MAP_TENSORS[:3]
+"""Those of them the stages read when the map has a dense level-0 grid (the others serve sorted-code lookups)."""
+MIN_CAPACITY_ROWS = 1024
+"""With a dense grid the static copies of :data:`GRID_MAP_TENSORS` have room for more rows (voxels, vertices) than the
+snapshot holds: the next power of two, at least this many, so a map that allocates voxels is copied in until it
+outgrows that, instead of being captured again at every mapping round that allocated (most rounds while a camera
+explores: 51 of 75 structure changes in 200 rounds of the synthetic room, 2026-11-27)."""
 
 
 def _level0_grid(voxels: VoxelMap) -> VoxelIndexGrid | None:
@@ -163,28 +172,42 @@ def _level0_grid(voxels: VoxelMap) -> VoxelIndexGrid | None:
     return voxels.index_grid()  # a snapshot has it built already; the first build reads sizes back (never in capture)
 
 
+def _capacity(rows: int) -> int:
+    return max(MIN_CAPACITY_ROWS, 1 << max(0, rows - 1).bit_length())
+
+
+def _read_tensors(voxels: VoxelMap) -> tuple[str, ...]:
+    """The map tensors the stages read: :data:`GRID_MAP_TENSORS` with a dense grid, else :data:`MAP_TENSORS`."""
+    return GRID_MAP_TENSORS if _level0_grid(voxels) is not None else MAP_TENSORS
+
+
 def _map_tensors(voxels: VoxelMap, decoder: SDFDecoder) -> list[torch.Tensor | None]:
-    """What a capture reads of a map, in a fixed order: :data:`MAP_TENSORS`, the level-0 grid's table (None without
+    """What a capture reads of a map, in a fixed order: :func:`_read_tensors`, the level-0 grid's table (None without
     a grid) and the decoder's parameters and buffers."""
     grid = _level0_grid(voxels)
-    return [*(getattr(voxels, n) for n in MAP_TENSORS), None if grid is None else grid.table,
+    return [*(getattr(voxels, n) for n in _read_tensors(voxels)), None if grid is None else grid.table,
             *decoder.state_dict(keep_vars=True).values()]
 
 
 class StaticMap:
     """A copy of a map snapshot (``voxels``, ``decoder``) whose tensors stay where they are: the graphs read these.
-    :meth:`load` copies a map of the same :func:`map_signature` in (a later snapshot after a mapping round that
-    allocated nothing, or the same one changed in place: each tensor is copied when it is another tensor or its
-    version counter moved), instead of a new capture."""
+    :meth:`load` copies a map of the same :func:`map_signature` in (a later snapshot after a mapping round, or the
+    same one changed in place: each tensor is copied when it is another tensor or its version counter moved),
+    instead of a new capture. With a dense grid the voxel and vertex tables have spare rows (:data:`MIN_CAPACITY_ROWS`),
+    which no lookup reaches: the grid holds indices of the snapshot's own voxels only."""
 
     def __init__(self, voxels: VoxelMap, decoder: SDFDecoder) -> None:
         static = object.__new__(type(voxels))
         static.__dict__.update(voxels.__dict__)  # its other tensors are never read by the stages (MAP_TENSORS)
-        for name in MAP_TENSORS:
-            t = getattr(voxels, name)
-            setattr(static, name, torch.nn.Parameter(t.detach().clone(), requires_grad=False)
-                    if isinstance(t, torch.nn.Parameter) else t.clone())
         grid = _level0_grid(voxels)
+        for name in _read_tensors(voxels):
+            t = getattr(voxels, name).detach()
+            if grid is not None:  # room to grow: the rows past the snapshot's are zeros (valid indices, never used)
+                copy_ = t.new_zeros((_capacity(t.shape[0]), *t.shape[1:]))
+                copy_[:t.shape[0]] = t
+            else:
+                copy_ = t.clone()
+            setattr(static, name, torch.nn.Parameter(copy_, requires_grad=False) if name == "embeddings" else copy_)
         static._grids = {0: None if grid is None else dataclasses.replace(grid, table=grid.table.clone())}
         self.voxels = static
         self.decoder = copy.deepcopy(decoder)
@@ -199,20 +222,28 @@ class StaticMap:
                 continue
             loaded, version = self._loaded[k]
             if src is not loaded or src._version != version:  # snapshots share their index tables until they change
-                dst.copy_(src)
+                dst[:src.shape[0]].copy_(src)
                 self._loaded[k] = (src, src._version)
 
 
 def map_signature(voxels: VoxelMap, decoder: SDFDecoder) -> tuple:
     """What a capture depends on besides the values: the map's settings (its Python scalars), the shapes of the
-    tensors the stages read (:data:`MAP_TENSORS`) and of its level-0 index grid (with its Python-int geometry, which
-    the lookups bake in), and the decoder's class, configuration and parameter shapes."""
-    scalars = tuple(sorted((k, v) for k, v in voxels.__dict__.items() if isinstance(v, (bool, int, float, str))))
+    tensors the stages read (:func:`_read_tensors`; with a dense grid their row capacity, not their rows) and of its
+    level-0 index grid (with its Python-int geometry, which the lookups bake in), and the decoder's class,
+    configuration and parameter shapes. With a dense grid the count of inactive voxels is left out (only sorted-code
+    lookups read it)."""
     grid = _level0_grid(voxels)
+    skip = {"_n_inactive"} if grid is not None else set()
+    scalars = tuple(sorted((k, v) for k, v in voxels.__dict__.items()
+                           if isinstance(v, (bool, int, float, str)) and k not in skip))
+    tensors = []
+    for name in _read_tensors(voxels):
+        t = getattr(voxels, name)
+        rows = _capacity(t.shape[0]) if grid is not None else t.shape[0]
+        tensors.append(((rows, *t.shape[1:]), t.dtype, t.device))
     grid_sig = None if grid is None else (grid.origin_xyz, grid.shape, grid.level, grid.border, _signature(grid.table))
     params = tuple((k, _signature(v)) for k, v in decoder.state_dict(keep_vars=True).items())
-    return (type(voxels), scalars, tuple(_signature(getattr(voxels, n)) for n in MAP_TENSORS), grid_sig,
-            type(decoder), repr(decoder.config), params)
+    return (type(voxels), scalars, tuple(tensors), grid_sig, type(decoder), repr(decoder.config), params)
 
 
 class _GraphSet:

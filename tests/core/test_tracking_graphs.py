@@ -187,18 +187,47 @@ def test_replayed_stages_give_the_eager_solution(device):
     eager, replayed = solve_both(tr, levels, T0, solver, graphs)
     assert_same_solution(eager, replayed, exact=device == "cpu")
     assert graphs.captures == 1
-    # a frame that allocates voxels: the map grew, captured again
-    n_voxels = mapper.voxels.n_voxels
+    # a frame that allocates voxels: copied into the spare rows, captured again only if the grid's box moved
+    n_voxels, box = mapper.voxels.n_voxels, grid_box(tr.voxels)
     mapper.integrate(frame_to_device(cap[8], device), cap[8].T_world_cam)
-    assert mapper.voxels.n_voxels > n_voxels
+    assert n_voxels < mapper.voxels.n_voxels <= tracking_graphs.MIN_CAPACITY_ROWS
     tr.set_map(mapper.voxels.snapshot(), copy.deepcopy(mapper.decoder))
     eager, replayed = solve_both(tr, levels, T0, solver, graphs)
     assert_same_solution(eager, replayed, exact=device == "cpu")
-    assert graphs.captures == 2
+    captures = 1 + (grid_box(tr.voxels) != box)
+    assert graphs.captures == captures
     # without the reference: another signature, captured again
     eager = solve_pose(tr.voxels, tr.decoder, levels, T0, solver, None)
     assert_same_solution(eager, graphs.solve(tr.voxels, tr.decoder, levels, T0, solver, None), exact=device == "cpu")
-    assert graphs.captures == 3 and not graphs.failed
+    assert graphs.captures == captures + 1 and not graphs.failed
+
+
+def grid_box(voxels):
+    g = voxels.index_grid()
+    return g.origin_xyz, g.shape
+
+
+@pytest.mark.parametrize("spare", [True, False])
+def test_a_growing_map_is_copied_in_until_it_outgrows_its_spare_rows(spare, monkeypatch):
+    """Voxels allocated inside the grid's box are copied into the spare rows; without spare rows (capacity = rows)
+    every allocation is a new capture. Every replay gives the eager solution."""
+    if not spare:
+        monkeypatch.setattr(tracking_graphs, "_capacity", lambda rows: rows)
+    cap, cfg, mapper = build_room("cpu")
+    tr, levels = solver_inputs(cap, cfg, mapper, 6, "cpu")
+    T0 = torch.as_tensor(perturbed(cap[6].T_world_cam))
+    graphs = tracking_graphs.SolverGraphs(torch.device("cpu"), record=tracking_graphs.record_eagerly)
+    assert_same_solution(*solve_both(tr, levels, T0, EVERY_TERM, graphs), exact=True)
+    expected = 1
+    for index in (6, 7, 8):
+        before = (grid_box(tr.voxels), tr.voxels.n_voxels)
+        mapper.integrate(frame_to_device(cap[index], "cpu"), cap[index].T_world_cam)
+        tr.set_map(mapper.voxels.snapshot(), copy.deepcopy(mapper.decoder))
+        after = (grid_box(tr.voxels), tr.voxels.n_voxels)
+        assert after[1] > before[1] and after[1] <= tracking_graphs.MIN_CAPACITY_ROWS  # grew, within the spare rows
+        expected += before[0] != after[0] or not spare
+        assert_same_solution(*solve_both(tr, levels, T0, EVERY_TERM, graphs), exact=True)
+        assert graphs.captures == expected, (before, after)
 
 
 def test_a_map_without_a_dense_grid_and_a_decoder_changed_in_place_replay_as_eager():
@@ -251,8 +280,9 @@ def test_a_failed_capture_leaves_graphs_off_and_running_out_of_memory_only_for_a
 
 
 def test_the_stages_read_only_the_map_tensors_the_graphs_copy():
-    """The stages on a map whose tensors outside :data:`MAP_TENSORS` and the index grids hold garbage give the same
-    solution: a snapshot's other tensors never reach the graphs, so :class:`StaticMap` need not copy them."""
+    """The stages on a map with a dense grid whose tensors outside :data:`GRID_MAP_TENSORS` and the grid hold garbage
+    give the same solution: a snapshot's other tensors never reach the graphs, so :class:`StaticMap` need not copy
+    them (without a grid it copies :data:`MAP_TENSORS`, the map without a grid test's case)."""
     cap, cfg, mapper = build_room("cpu")
     tr, levels = solver_inputs(cap, cfg, mapper, 6, "cpu")
     T0 = torch.as_tensor(perturbed(cap[6].T_world_cam))
@@ -261,11 +291,13 @@ def test_the_stages_read_only_the_map_tensors_the_graphs_copy():
     poisoned.__dict__.update(tr.voxels.__dict__)
     replaced = []
     for name, value in tr.voxels.__dict__.items():
-        if isinstance(value, torch.Tensor) and name not in tracking_graphs.MAP_TENSORS:
+        if isinstance(value, torch.Tensor) and name not in tracking_graphs.GRID_MAP_TENSORS:
             garbage = torch.full_like(value, True) if value.dtype == torch.bool else torch.full_like(value, -7)
             setattr(poisoned, name, ~value if value.dtype == torch.bool else garbage)
             replaced.append(name)
-    assert {"_voxel_codes", "_voxel_hits", "_voxel_surface", "_vertex_codes"} <= set(replaced)
+    assert tr.voxels.index_grid() is not None  # with a dense grid: the sorted codes and activity flags unread too
+    assert {"_voxel_codes", "_voxel_hits", "_voxel_surface", "_vertex_codes", "_sorted_voxel_codes",
+            "_voxel_active"} <= set(replaced)
     dirty = solve_pose(poisoned, tr.decoder, levels, T0, EVERY_TERM, tr._reference)
     for name in ("T", "cost", "inlier_fraction", "median_residual_m", "n_valid"):
         assert torch.equal(getattr(dirty, name), getattr(clean, name)), name
