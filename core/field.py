@@ -322,11 +322,17 @@ class _WeightedCornerSum(torch.autograd.Function):
 def _corner_weight_grad(emb: torch.Tensor, vertex_ids: torch.Tensor, voxel_idx: torch.Tensor,
                         grad_out: torch.Tensor) -> torch.Tensor:
     """Gradient ``[K, 8]`` of a weighted corner sum (:class:`_WeightedCornerSum`) with respect to its weights,
-    given the gradient ``grad_out [K, D]`` with respect to its output: each sample's voxel's corner rows
-    (gathered per voxel, then per sample) dotted with it, one batched product."""
+    given the gradient ``grad_out [K, D]`` with respect to its output: each sample's voxel's corner rows dotted
+    with it, one batched product. The rows are gathered per voxel, then per sample, where the samples outnumber the
+    voxels (``K > M``: every voxel's rows once), else per sample directly (a map of more voxels than the tracker
+    has points: the work stays ``K``, not ``M``); the same numbers either way."""
     k, d = grad_out.shape
-    corners = torch.nn.functional.embedding(vertex_ids, emb).reshape(vertex_ids.shape[0], 8 * d)  # [M, 8 D]
-    return torch.bmm(corners.index_select(0, voxel_idx).reshape(k, 8, d), grad_out[:, :, None]).squeeze(2)
+    m = vertex_ids.shape[0]
+    if k > m:
+        corners = torch.nn.functional.embedding(vertex_ids, emb).reshape(m, 8 * d).index_select(0, voxel_idx)
+    else:
+        corners = torch.nn.functional.embedding(vertex_ids.index_select(0, voxel_idx), emb)  # [K, 8, D]
+    return torch.bmm(corners.reshape(k, 8, d), grad_out[:, :, None]).squeeze(2)
 
 
 @torch.no_grad()

@@ -324,3 +324,21 @@ def test_sdf_with_gradient_falls_back_to_autograd_for_other_decoders(variant: di
     for got, want in zip(sdf_with_gradient(vm, dec, pts, idx), sdf_with_gradient_reference(vm, dec, pts, idx),
                          strict=True):
         torch.testing.assert_close(got, want, rtol=0, atol=0)
+
+
+def test_corner_weight_gradient_gathers_per_voxel_or_per_sample_alike():
+    """More samples than voxels: every voxel's corner rows once, then per sample; fewer: per sample directly. The
+    same numbers either way (the rows gathered are the same, the product the same)."""
+    from voxfusion.core.field import _corner_weight_grad
+
+    g = torch.Generator().manual_seed(5)
+    emb = torch.randn(60, 16, generator=g)
+    vertex_ids = torch.randint(0, 60, (30, 8), generator=g)
+    for k in (100, 10):  # K > M, then K < M
+        voxel_idx = torch.randint(0, 30, (k,), generator=g)
+        grad_out = torch.randn(k, 16, generator=g)
+        got = _corner_weight_grad(emb, vertex_ids, voxel_idx, grad_out)
+        rows = emb[vertex_ids[voxel_idx]]  # [K, 8, D]
+        torch.testing.assert_close(got, (rows * grad_out[:, None, :]).sum(-1), rtol=1e-6, atol=1e-6)
+        other = torch.nn.functional.embedding(vertex_ids, emb).reshape(30, 128).index_select(0, voxel_idx)
+        assert torch.equal(got, torch.bmm(other.reshape(k, 8, 16), grad_out[:, :, None]).squeeze(2))
