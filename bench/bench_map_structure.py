@@ -8,9 +8,10 @@ Usage (from the repository root; any machine, the ``cpu`` sizes)::
 Each capture's frames are played back and forth (as the GPU suite's realtime feeds are) through an offline
 :class:`SlamSystem` at the preset :func:`preset_for` picks on a CPU, one mapping round per frame; every new snapshot's
 :func:`~voxfusion.core.tracking_graphs.map_signature` is compared with the previous one's, with the static map's spare
-rows (the default) and without them (capacity = rows), in the same run. The second half of the rounds replays frames
-the map has seen (what a camera revisiting mapped space does). Allocation is the same at GPU sizes (same voxels), so
-the counts stand for a GPU session's recaptures per mapping round.
+rows and the aligned level-0 grid box (the defaults), without spare rows (capacity = rows), and with the grid's
+tight box (:data:`~voxfusion.core.voxels.voxel_map.LEVEL0_GRID_ALIGN` = 1), in the same run. The second half of the
+rounds replays frames the map has seen (what a camera revisiting mapped space does). Allocation is the same at GPU
+sizes (same voxels), so the counts stand for a GPU session's recaptures per mapping round.
 """
 
 from __future__ import annotations
@@ -31,12 +32,17 @@ from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig 
 from voxfusion.core.eval.report import write_json  # noqa: E402
 from voxfusion.core.slam import SlamSystem  # noqa: E402
 from voxfusion.core.slam_config import preset_for  # noqa: E402
+from voxfusion.core.voxels import voxel_map  # noqa: E402
 
 SEVENSCENES = REPO_ROOT.parent / "shared" / "data" / "sevenscenes_redkitchen"
 
 
-def signatures(snapshot) -> tuple[tuple, tuple]:  # noqa: ANN001
-    """``(with spare rows, without)`` map signatures of a snapshot."""
+VARIANTS = ("spare rows", "exact rows", "tight grid")
+
+
+def signatures(snapshot) -> tuple[tuple, tuple, tuple]:  # noqa: ANN001
+    """Map signatures of a snapshot for :data:`VARIANTS`: as the tracker's graphs see it (spare rows, aligned grid
+    box), without spare rows, and with a tight grid box (built afresh on a shallow copy of the snapshot's map)."""
     spare = tracking_graphs.map_signature(snapshot.voxels, snapshot.decoder)
     default = tracking_graphs._capacity
     tracking_graphs._capacity = lambda rows: rows
@@ -44,13 +50,22 @@ def signatures(snapshot) -> tuple[tuple, tuple]:  # noqa: ANN001
         exact = tracking_graphs.map_signature(snapshot.voxels, snapshot.decoder)
     finally:
         tracking_graphs._capacity = default
-    return spare, exact
+    tight_map = object.__new__(type(snapshot.voxels))
+    tight_map.__dict__.update(snapshot.voxels.__dict__)
+    tight_map._grids = {}
+    align = voxel_map.LEVEL0_GRID_ALIGN
+    voxel_map.LEVEL0_GRID_ALIGN = 1
+    try:
+        tight = tracking_graphs.map_signature(tight_map, snapshot.decoder)
+    finally:
+        voxel_map.LEVEL0_GRID_ALIGN = align
+    return spare, exact, tight
 
 
 def count_changes(capture, rounds: int) -> dict:  # noqa: ANN001
     frames = [capture[i] for i in range(len(capture))]
     slam = SlamSystem(preset_for(capture, "cpu", ["mode=offline"]).config)
-    last, previous, changes = None, None, {"spare rows": [], "exact rows": []}
+    last, previous, changes = None, None, {name: [] for name in VARIANTS}
     for frame in feed_order(frames, rounds, 30.0):
         slam.process(frame)
         snap = slam.snapshot
@@ -58,8 +73,8 @@ def count_changes(capture, rounds: int) -> dict:  # noqa: ANN001
             continue
         sig = signatures(snap)
         if previous is not None:
-            changes["spare rows"].append(sig[0] != previous[0])
-            changes["exact rows"].append(sig[1] != previous[1])
+            for name, now, before in zip(VARIANTS, sig, previous, strict=True):
+                changes[name].append(now != before)
         last, previous = snap, sig
     n_voxels = slam.snapshot.voxels.n_voxels
     slam.close()
@@ -90,9 +105,9 @@ def main(argv: list[str] | None = None) -> int:
             continue
         row = count_changes(cap, args.rounds)
         rows.append(row)
-        print(f"{row['capture']}: {row['snapshots']} snapshots; structure changes with spare rows "
-              f"{row['spare rows']['structure_changes']} ({row['spare rows']['in_second_half']} in the second half), "
-              f"without {row['exact rows']['structure_changes']} ({row['exact rows']['in_second_half']})", flush=True)
+        counts = ", ".join(f"{name} {row[name]['structure_changes']} ({row[name]['in_second_half']} in the second half)"
+                           for name in VARIANTS)
+        print(f"{row['capture']}: {row['snapshots']} snapshots; structure changes: {counts}", flush=True)
     write_json(args.out, {"benchmark": "map_structure", "machine": machine_info(), "command": " ".join(sys.argv),
                           "rounds": args.rounds, "captures": rows})
     print(f"wrote {args.out}")

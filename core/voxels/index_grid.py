@@ -17,6 +17,7 @@ Example:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -89,8 +90,13 @@ class VoxelIndexGrid:
 
 
 def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: int, border: int,
-                     max_cells: int) -> VoxelIndexGrid | None:
+                     max_cells: int, align: int = 1) -> VoxelIndexGrid | None:
     """Dense grid of ``values`` at the level-``level`` cells of ``voxel_coords``; None if too large.
+
+    With ``align > 1`` the box (border included) is widened to cell coordinates that are multiples of ``align``:
+    more empty cells, but a map that grows by a few voxels keeps the same box until it crosses a multiple (what the
+    tracker's CUDA graphs, which bake the box in, are captured again for). Where the aligned box would exceed
+    ``max_cells`` the tight one is built.
 
     Args:
         voxel_coords: ``[M, 3]`` int64 voxel coordinates (M >= 1).
@@ -98,16 +104,22 @@ def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: in
         level: octree level of the grid's cells (0 = voxels).
         border: empty cells added on every side of the occupied box.
         max_cells: memory budget; None is returned when the grid would have more cells.
+        align: the box's corners are multiples of this many cells (1: the tight box).
     """
     if voxel_coords.dim() != 2 or voxel_coords.shape[1] != 3 or voxel_coords.shape[0] == 0:
         raise ShapeError("voxel_coords", tuple(voxel_coords.shape), "[M >= 1, 3]")
     if values.shape != voxel_coords.shape[:1]:
         raise ShapeError("values", tuple(values.shape), f"({voxel_coords.shape[0]},)")
-    if level < 0 or border < 0:
-        raise ValidationError("level/border", f"must be >= 0, got {level}/{border}")
+    if level < 0 or border < 0 or align < 1:
+        raise ValidationError("level/border/align", f"must be >= 0, >= 0, >= 1, got {level}/{border}/{align}")
     cells = torch.div(voxel_coords, 1 << level, rounding_mode="floor")
     lo = cells.min(0).values - border
     hi = cells.max(0).values + border
+    if align > 1:
+        lo_a = torch.div(lo, align, rounding_mode="floor") * align
+        hi_a = (torch.div(hi, align, rounding_mode="floor") + 1) * align - 1
+        if math.prod(int(s) for s in (hi_a - lo_a + 1).tolist()) <= max_cells:
+            lo, hi = lo_a, hi_a
     size = hi - lo + 1
     shape = tuple(int(s) for s in size.tolist())
     if shape[0] * shape[1] * shape[2] > max_cells:

@@ -86,6 +86,13 @@ class SurfacePoints(NamedTuple):
     n_voxels: int
 
 
+LEVEL0_GRID_ALIGN = 8
+"""The level-0 index grid's box has corners at multiples of this many voxels (:func:`build_index_grid`'s ``align``):
+a map that grows by a voxel keeps its box, and the tracker's CUDA graphs, which bake the box in, are not captured
+again (``python bench/bench_map_structure.py``: 9 box changes in 200 mapping rounds of the synthetic room with the
+tight box, 1 with this one; 7-Scenes 3 and 0). Coarser grids stay tight (their occupancy ratio steers the ray
+caster's choice of grid)."""
+
 @dataclass(frozen=True)
 class MemoryReport:
     """Sizes of a :class:`VoxelMap` (and optionally its decoder), in counts and bytes."""
@@ -291,8 +298,8 @@ class VoxelMap:
                           else torch.zeros(coords.shape[0], dtype=torch.int64, device=coords.device))
                 if self._n_inactive:
                     values = torch.where(self._voxel_active, values, torch.full_like(values, -1))
-                grid = build_index_grid(coords, values, level, border=1,
-                                        max_cells=self._dense_grid_max_cells)
+                grid = build_index_grid(coords, values, level, border=1, max_cells=self._dense_grid_max_cells,
+                                        align=LEVEL0_GRID_ALIGN if level == 0 else 1)
             grids[level] = grid
         return grids[level]
 

@@ -16,6 +16,7 @@ from voxfusion.core.voxels import (
     morton_encode,
 )
 from voxfusion.core.voxels.index_grid import build_index_grid
+from voxfusion.core.voxels.voxel_map import LEVEL0_GRID_ALIGN
 
 
 def _reference_morton(x: int, y: int, z: int) -> int:
@@ -230,7 +231,10 @@ def test_lookup_via_dense_grid_equals_sorted_codes(centre):
     grid = vm.index_grid()
     assert grid is not None and grid.n_occupied == vm.n_voxels and grid.level == 0
     lo, hi = vm.voxel_bounds
-    assert torch.equal(grid.origin, lo - 1) and grid.shape == tuple((hi - lo + 3).tolist())  # one-cell border
+    # the box: at least a one-cell border, corners on multiples of LEVEL0_GRID_ALIGN
+    a = LEVEL0_GRID_ALIGN
+    assert torch.equal(grid.origin, torch.div(lo - 1, a, rounding_mode="floor") * a)
+    assert torch.equal(grid.origin + grid.size, (torch.div(hi + 1, a, rounding_mode="floor") + 1) * a)
     q = _query_points(21, centre, 1.5)
     for pts in (q, q.float()):
         got = vm.lookup_voxels(pts)
