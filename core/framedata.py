@@ -16,7 +16,7 @@ from .datasets.frame import RGBDFrame
 from .depth_filter import DepthFilterConfig, depth_outlier_mask
 from .errors import ValidationError
 
-__all__ = ["FrameData", "PixelBatch", "frame_to_device", "sample_pixels", "sample_valid_pixels"]
+__all__ = ["FrameData", "PixelBatch", "flat_uv", "frame_to_device", "sample_pixels", "sample_valid_pixels"]
 
 _DEFAULT_DEPTH_FILTER = DepthFilterConfig()
 
@@ -109,6 +109,12 @@ def sample_valid_pixels(frame: FrameData, n: int, generator: torch.Generator | N
     return frame.valid_idx[pick]
 
 
+def flat_uv(flat: torch.Tensor, width: int) -> torch.Tensor:
+    """``[..., 2]`` float64 ``(u, v)`` (column, row) of flat pixel indices ``flat [...]`` = ``v * width + u``."""
+    return torch.stack([(flat % width).to(torch.float64),
+                        torch.div(flat, width, rounding_mode="floor").to(torch.float64)], -1)
+
+
 def sample_pixels(frame: FrameData, n: int, generator: torch.Generator | None = None) -> PixelBatch:
     """Draw ``n`` pixels uniformly (with replacement) among the frame's valid-depth pixels.
 
@@ -116,10 +122,7 @@ def sample_pixels(frame: FrameData, n: int, generator: torch.Generator | None = 
         ValidationError: the frame has no valid depth pixel.
     """
     flat = sample_valid_pixels(frame, n, generator)
-    w = frame.width
-    u = (flat % w).to(torch.float64)
-    v = torch.div(flat, w, rounding_mode="floor").to(torch.float64)
-    uv = torch.stack([u, v], -1)
+    uv = flat_uv(flat, frame.width)
     depth = frame.depth_m.reshape(-1)[flat]
     color = frame.color.reshape(-1, 3)[flat] if frame.color is not None else None
     return PixelBatch(uv=uv, depth_m=depth, color=color)

@@ -68,8 +68,9 @@ class LossTerms:
 
 
 def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    n = mask.sum()
-    return torch.where(n > 0, (x * mask).sum() / n.clamp(min=1), x.new_zeros(()))
+    """Mean of ``x`` over ``mask`` (same shape), 0 where the mask is empty; whatever ``x`` holds outside the mask
+    (non-finite values included) counts for nothing. Five operators, no read-back."""
+    return torch.where(mask, x, 0.0).sum() / mask.sum().clamp(min=1)
 
 
 def compute_losses(out: RenderOutput, depth_gt: torch.Tensor, color_gt: torch.Tensor | None,

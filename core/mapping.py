@@ -34,7 +34,7 @@ from .depth_filter import DepthFilterConfig
 from .errors import ConfigError, ValidationError
 from .evidence import EvidenceConfig, observe_frame
 from .field import FieldConfig, SDFDecoder, query
-from .framedata import FrameData, sample_pixels
+from .framedata import FrameData, flat_uv, sample_valid_pixels
 from .lie import perturb_right
 from .losses import LossConfig, LossTerms, compute_losses
 from .mesh.colors import ColorView
@@ -282,22 +282,43 @@ class _PoseRays(torch.autograd.Function):
 def window_rays(window: list[Keyframe], rays_per_frame: int, generator: torch.Generator | None = None,
                 train_poses: bool = False
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, list[torch.Tensor | None]]:
-    """A mapping window's rays in one batch: ``rays_per_frame`` pixels per keyframe (:func:`sample_pixels`, in
+    """A mapping window's rays in one batch: ``rays_per_frame`` pixels per keyframe (:func:`sample_valid_pixels`, in
     window order) as world ``origins [W n, 3]`` and ``dirs [W n, 3]`` float32 (:func:`~.render.camera_rays`'
     convention), their observed depth ``[W n]`` and each keyframe's pixel colours ``[n, 3]`` (None without colour).
 
-    The window's poses ``T_base exp(delta)`` are one batched ``[W, 4, 4]`` exponential and the directions one
-    batched product, differentiable in the deltas of the keyframes that are not fixed when ``train_poses``,
-    with the pose gradient written out (:class:`_PoseRays`). Per keyframe, :meth:`Keyframe.pose` and
-    :func:`~.render.camera_rays` give the same rays and, up to the first order in ``delta``, the same gradients
-    (tested)."""
-    pixels = [sample_pixels(kf.data, rays_per_frame, generator) for kf in window]
+    Only the draws and the gathers from each keyframe's images are per keyframe; the pixels' camera directions
+    (:func:`_window_directions`), the window's poses ``T_base exp(delta)`` (one batched ``[W, 4, 4]`` exponential)
+    and the world rays are computed for the whole window at once (on a GPU every operator is a launch), differentiable
+    in the deltas of the keyframes that are not fixed when ``train_poses``, with the pose gradient written out
+    (:class:`_PoseRays`). Per keyframe, :func:`~.framedata.sample_pixels`, :meth:`Keyframe.pose` and
+    :func:`~.render.camera_rays` give the same rays (to the bit) and, up to the first order in ``delta``, the same
+    gradients (tested)."""
+    flat = [sample_valid_pixels(kf.data, rays_per_frame, generator) for kf in window]
+    depth = torch.cat([kf.data.depth_m.reshape(-1)[f] for kf, f in zip(window, flat, strict=True)])
+    colors = [None if kf.data.color is None else kf.data.color.reshape(-1, 3)[f]
+              for kf, f in zip(window, flat, strict=True)]
     delta = torch.stack([kf.delta if train_poses and not kf.fixed else kf.delta.detach() for kf in window])
     with torch.no_grad():
         T = perturb_right(torch.stack([kf.T_base for kf in window]), delta)  # [W, 4, 4] float64
-    d_cam = torch.stack([camera_directions(kf.data.K, px.uv) for kf, px in zip(window, pixels, strict=True)])
-    origins, dirs = _PoseRays.apply(delta, T, d_cam)
-    return origins, dirs, torch.cat([px.depth_m for px in pixels]), [px.color for px in pixels]
+    origins, dirs = _PoseRays.apply(delta, T, _window_directions(window, flat))
+    return origins, dirs, depth, colors
+
+
+def _window_directions(window: list[Keyframe], flat: list[torch.Tensor]) -> torch.Tensor:
+    """``[W, n, 3]`` float64 camera-frame directions (:func:`~.render.camera_directions`' convention, the same
+    numbers) of each keyframe's pixels ``flat [n]`` (``v * width + u``), one batch for the window when its frames
+    share a width (one capture), else per keyframe."""
+    widths = {kf.data.width for kf in window}
+    if len(widths) != 1:
+        return torch.stack([camera_directions(kf.data.K, flat_uv(f, kf.data.width))
+                            for kf, f in zip(window, flat, strict=True)])
+    (w,) = widths
+    K = torch.stack([kf.data.K for kf in window]).to(torch.float64)  # [W, 3, 3]
+    uv = flat_uv(torch.stack(flat), w)  # [W, n, 2]
+    c = K[:, None, :2, 2]  # [W, 1, 2] principal point
+    f = torch.diagonal(K, dim1=1, dim2=2)[:, None, :2]  # [W, 1, 2] focal lengths
+    xy = (uv - c) / f
+    return torch.cat([xy, torch.ones_like(xy[..., :1])], -1)
 
 
 def band_loss(voxels: VoxelMap, decoder: SDFDecoder, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,

@@ -198,6 +198,27 @@ def test_window_rays_match_each_keyframes_own_rays_and_pose_gradients():
     assert not o.requires_grad and not d.requires_grad
 
 
+def test_window_directions_batched_equal_each_keyframes_own():
+    """The window's camera directions in one batch are each keyframe's :func:`camera_directions` to the bit, and a
+    window whose frames differ in width (two captures' keyframes) takes the per-keyframe path."""
+    from voxfusion.core.framedata import flat_uv
+    from voxfusion.core.mapping import Keyframe, _window_directions
+    from voxfusion.core.render import camera_directions
+
+    def keyframes(width: int, height: int, n: int) -> list:
+        frames = SyntheticCapture(SyntheticConfig(n_frames=n, width=width, height=height)).frames()
+        return [Keyframe.create(frame_to_device(f, "cpu"), torch.as_tensor(f.T_world_cam)) for f in frames]
+
+    g = torch.Generator().manual_seed(0)
+    for window in (keyframes(48, 36, 3), keyframes(48, 36, 1) + keyframes(40, 30, 2)):
+        flat = [kf.data.valid_idx[torch.randint(0, kf.data.n_valid, (23,), generator=g)] for kf in window]
+        got = _window_directions(window, flat)
+        want = torch.stack([camera_directions(kf.data.K, flat_uv(f, kf.data.width))
+                            for kf, f in zip(window, flat, strict=True)])
+        assert got.shape == (len(window), 23, 3) and got.dtype == torch.float64
+        assert torch.equal(got, want)
+
+
 def test_window_colours_mask_rays_without_colour():
     from voxfusion.core.mapping import _window_colors
 
