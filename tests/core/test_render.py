@@ -113,6 +113,14 @@ def test_intersection_chunking_does_not_change_the_result(monkeypatch, impl):
     assert_same_hits(chunked, whole)
 
 
+def test_a_gpu_walks_bigger_chunks_than_a_cpu():
+    """A chunk's fixed cost is launches and read-backs on a GPU: its budget is larger there (the results do not depend
+    on it: the test above)."""
+    cpu = raycast_module._event_budget(torch.device("cpu"))
+    assert cpu == raycast_module._EVENT_BUDGET
+    assert raycast_module._event_budget(torch.device("cuda")) == cpu * raycast_module._GPU_BUDGET_FACTOR > cpu
+
+
 # ---------------------------------------------------------------- fast intersection == reference
 def assert_same_hits(got: VoxelHits, want: VoxelHits) -> None:
     """Same ordered voxel lists and bit-identical entry / exit times (the fast path is exact)."""
