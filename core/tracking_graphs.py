@@ -164,7 +164,7 @@ MIN_CAPACITY_ROWS = 4096
 """With a dense grid the static copies of :data:`GRID_MAP_TENSORS` have room for more rows (voxels, vertices) than the
 snapshot holds: the next power of two, at least this many, so a map that allocates voxels is copied in until it
 outgrows that, instead of being captured again at every mapping round that allocated. Only the snapshot's rows are
-copied in and no stage reads past them, so the spare rows cost memory only (4096 rows: ~0.4 MB). ``python
+copied in and no stage reads past them, so the spare rows cost memory only (4096 rows: ~0.6 MB). ``python
 bench/bench_map_structure.py`` (200 mapping rounds; the grid's box aligned,
 :data:`~.voxels.voxel_map.LEVEL0_GRID_ALIGN`): synthetic room / 7-Scenes 1 / 0 captures after the first, against
 71 / 73 without spare rows."""

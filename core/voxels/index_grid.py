@@ -1,10 +1,10 @@
 """Dense index grid over a voxel map's bounding box: O(1) voxel lookup without Morton codes.
 
-A :class:`VoxelIndexGrid` is a flat ``int32`` table over the box ``[lo - border, hi + border]`` of
-integer *cell* coordinates at octree level ``level`` (a level-``k`` cell is the block of
-``2**k x 2**k x 2**k`` voxels ``floor(ijk / 2**k)``, the Morton parent ``code >> 3k``). Each entry holds a
-value (a voxel index at level 0, 0 = "occupied" for coarser levels) or -1. The ``border`` of -1 cells
-around the occupied box lets a ray walk that ends one cell beyond the box skip per-cell bounds checks.
+A :class:`VoxelIndexGrid` is a flat ``int32`` table over the box ``[lo - border, hi + border]`` (widened to
+multiples of ``align`` cells when asked) of integer *cell* coordinates at octree level ``level`` (a level-``k``
+cell is the block of ``2**k x 2**k x 2**k`` voxels ``floor(ijk / 2**k)``, the Morton parent ``code >> 3k``).
+Each entry holds a value (a voxel index at level 0, 0 = "occupied" for coarser levels) or -1. The ``border`` of
+-1 cells around the occupied box lets a ray walk that ends one cell beyond the box skip per-cell bounds checks.
 
 Grids are immutable once built (never written in place), so a map snapshot may share them.
 
@@ -49,7 +49,8 @@ class VoxelIndexGrid:
     table: torch.Tensor
     n_occupied: int
     border: int = 0
-    """Empty cells on every side of the occupied box (>= 1: :meth:`lookup` clamps onto them)."""
+    """At least this many empty cells on every side of the occupied box (more where the box is aligned; >= 1:
+    :meth:`lookup` clamps onto them)."""
 
     @property
     def strides(self) -> tuple[int, int, int]:
@@ -115,13 +116,16 @@ def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: in
     cells = torch.div(voxel_coords, 1 << level, rounding_mode="floor")
     lo = cells.min(0).values - border
     hi = cells.max(0).values + border
-    if align > 1:
-        lo_a = torch.div(lo, align, rounding_mode="floor") * align
-        hi_a = (torch.div(hi, align, rounding_mode="floor") + 1) * align - 1
-        if math.prod(int(s) for s in (hi_a - lo_a + 1).tolist()) <= max_cells:
-            lo, hi = lo_a, hi_a
+    lo_xyz, hi_xyz = torch.stack([lo, hi]).tolist()  # the one read-back: the box as Python ints
+    if align > 1:  # the same box on the device and in Python (floor division on both)
+        lo_a = [c // align * align for c in lo_xyz]
+        hi_a = [(c // align + 1) * align - 1 for c in hi_xyz]
+        if math.prod(h - l + 1 for l, h in zip(lo_a, hi_a, strict=True)) <= max_cells:
+            lo_xyz, hi_xyz = lo_a, hi_a
+            lo = torch.div(lo, align, rounding_mode="floor") * align
+            hi = (torch.div(hi, align, rounding_mode="floor") + 1) * align - 1
+    shape = tuple(h - l + 1 for l, h in zip(lo_xyz, hi_xyz, strict=True))
     size = hi - lo + 1
-    shape = tuple(int(s) for s in size.tolist())
     if shape[0] * shape[1] * shape[2] > max_cells:
         return None
     table = torch.full((shape[0] * shape[1] * shape[2],), -1, dtype=torch.int32, device=voxel_coords.device)
@@ -130,5 +134,5 @@ def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: in
     # a cell holding several voxels keeps the largest value (deterministic on every device), so a coarse
     # block is occupied (0) when any of its voxels is, whatever the order of the inactive (-1) ones
     table.scatter_reduce_(0, rel[:, 0] * sx + rel[:, 1] * sy + rel[:, 2], values.to(torch.int32), "amax")
-    return VoxelIndexGrid(origin=lo, origin_xyz=tuple(int(c) for c in lo.tolist()), size=size, shape=shape,
+    return VoxelIndexGrid(origin=lo, origin_xyz=tuple(lo_xyz), size=size, shape=shape,
                           level=level, table=table, n_occupied=int((table >= 0).sum()), border=border)

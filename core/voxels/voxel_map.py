@@ -275,7 +275,8 @@ class VoxelMap:
         self._invalidate_grids()
 
     def index_grid(self, level: int = 0) -> VoxelIndexGrid | None:
-        """Dense index grid over the allocated voxels' bounding box (plus a one-cell border), or None.
+        """Dense index grid over the allocated voxels' bounding box (plus a one-cell border; at level 0 widened to
+        multiples of :data:`LEVEL0_GRID_ALIGN` voxels), or None.
 
         ``level`` 0: each cell is a voxel and holds its index (-1 where unallocated or inactive). ``level``
         k > 0: each cell is a block of ``2**k`` voxels per axis (the octree level ``code >> 3k``) and holds

@@ -153,6 +153,22 @@ def test_trilinear_weights_are_the_corner_products_with_their_gradient():
     torch.testing.assert_close(gx, gy, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_trilinear_weights_per_column_and_as_outer_products_are_the_same_numbers(dtype):
+    """The CPU form (per column) and the GPU form (outer products of per-axis weights, fewer launches) compute the
+    same arithmetic in the same order: equal to the bit, weights and coordinate gradients, corners included."""
+    from voxfusion.core import field
+
+    g = torch.Generator().manual_seed(5)
+    local = torch.rand(1000, 3, generator=g, dtype=dtype)
+    local[:4] = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.0, 1.0, 0.5], [0.25, 0.0, 1.0]], dtype=dtype)
+    grad_w = torch.randn(1000, 8, generator=g, dtype=dtype)
+    assert torch.equal(field._trilinear_weights_per_column(local), field._trilinear_weights_outer(local))
+    assert torch.equal(field._trilinear_backward_per_column(local, grad_w),
+                       field._trilinear_backward_outer(local, grad_w))
+    assert torch.equal(field._trilinear_weight_columns(local), field._trilinear_weights_per_column(local))  # CPU
+
+
 @pytest.mark.parametrize("n_points", [3000, 40])
 def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_points: int):
     """The fast path (embedding_bag forward, hand-written backward) against the plain gather-and-sum:

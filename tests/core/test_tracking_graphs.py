@@ -210,7 +210,8 @@ def grid_box(voxels):
 @pytest.mark.parametrize("spare", [True, False])
 def test_a_growing_map_is_copied_in_until_it_outgrows_its_spare_rows(spare, monkeypatch):
     """Voxels allocated inside the grid's box are copied into the spare rows; without spare rows (capacity = rows)
-    every allocation is a new capture. Every replay gives the eager solution."""
+    every allocation is a new capture, and so is a voxel beyond the grid's box (the box moves). Every replay gives
+    the eager solution."""
     if not spare:
         monkeypatch.setattr(tracking_graphs, "_capacity", lambda rows: rows)
     cap, cfg, mapper = build_room("cpu")
@@ -228,6 +229,15 @@ def test_a_growing_map_is_copied_in_until_it_outgrows_its_spare_rows(spare, monk
         expected += before[0] != after[0] or not spare
         assert_same_solution(*solve_both(tr, levels, T0, EVERY_TERM, graphs), exact=True)
         assert graphs.captures == expected, (before, after)
+    # one voxel two cells beyond the (aligned) box along x: the box moves, a new capture
+    (ox, oy, oz), (nx, ny, nz) = before = grid_box(tr.voxels)
+    v = tr.voxels.voxel_size_m
+    far = torch.tensor([[(ox + nx + 2.5) * v, (oy + ny // 2 + 0.5) * v, (oz + nz // 2 + 0.5) * v]], dtype=torch.float64)
+    assert mapper.voxels.allocate(far) == 1
+    tr.set_map(mapper.voxels.snapshot(), copy.deepcopy(mapper.decoder))
+    assert grid_box(tr.voxels) != before
+    assert_same_solution(*solve_both(tr, levels, T0, EVERY_TERM, graphs), exact=True)
+    assert graphs.captures == expected + 1
 
 
 def test_a_map_without_a_dense_grid_and_a_decoder_changed_in_place_replay_as_eager():
