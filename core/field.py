@@ -237,7 +237,7 @@ def local_coords(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: tor
 
     ``voxel_idx`` entries must be valid (>= 0).
     """
-    origin = voxel_map.voxel_coords[voxel_idx].to(points_world.dtype) * voxel_map.voxel_size_m
+    origin = voxel_map.voxel_coords.index_select(0, voxel_idx).to(points_world.dtype) * voxel_map.voxel_size_m
     return ((points_world - origin) / voxel_map.voxel_size_m).clamp(0.0, 1.0)
 
 
@@ -297,7 +297,8 @@ class _WeightedCornerSum(torch.autograd.Function):
     def forward(ctx, emb: torch.Tensor, vertex_ids: torch.Tensor, voxel_idx: torch.Tensor,  # noqa: ANN001
                 w: torch.Tensor) -> torch.Tensor:
         ctx.save_for_backward(emb, vertex_ids, voxel_idx, w)
-        return torch.nn.functional.embedding_bag(vertex_ids[voxel_idx], emb, per_sample_weights=w, mode="sum")
+        return torch.nn.functional.embedding_bag(vertex_ids.index_select(0, voxel_idx), emb, per_sample_weights=w,
+                                                 mode="sum")
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -351,13 +352,13 @@ def sdf_with_gradient(voxel_map: VoxelMap, decoder: SDFDecoder, points_world: to
     if not decoder.has_plain_gradient:
         return sdf_with_gradient_reference(voxel_map, decoder, points_world, voxel_idx)
     v = voxel_map.voxel_size_m
-    origin = voxel_map.voxel_coords[voxel_idx].to(points_world.dtype) * v
+    origin = voxel_map.voxel_coords.index_select(0, voxel_idx).to(points_world.dtype) * v
     raw = (points_world - origin) / v
     loc = raw.clamp(0.0, 1.0)
     emb = voxel_map.embeddings
     w = _trilinear_weight_columns(loc).to(emb.dtype)
-    feats = torch.nn.functional.embedding_bag(voxel_map.voxel_vertex_ids[voxel_idx], emb, per_sample_weights=w,
-                                              mode="sum")
+    feats = torch.nn.functional.embedding_bag(voxel_map.voxel_vertex_ids.index_select(0, voxel_idx), emb,
+                                              per_sample_weights=w, mode="sum")
     sdf, g_feat = decoder.sdf_and_input_gradient(feats)
     g_loc = _trilinear_weight_backward(loc, _corner_weight_grad(emb, voxel_map.voxel_vertex_ids, voxel_idx, g_feat))
     unclamped = (raw >= 0.0) & (raw <= 1.0)

@@ -106,7 +106,7 @@ def sample_valid_pixels(frame: FrameData, n: int, generator: torch.Generator | N
     # keep) makes no host-to-device copy per call; a CPU generator (or None) draws on the CPU as before
     gdev = generator.device if generator is not None else torch.device("cpu")
     pick = torch.randint(0, frame.n_valid, (n,), generator=generator, device=gdev).to(frame.valid_idx.device)
-    return frame.valid_idx[pick]
+    return frame.valid_idx.index_select(0, pick)
 
 
 def flat_uv(flat: torch.Tensor, width: int) -> torch.Tensor:
@@ -123,6 +123,6 @@ def sample_pixels(frame: FrameData, n: int, generator: torch.Generator | None = 
     """
     flat = sample_valid_pixels(frame, n, generator)
     uv = flat_uv(flat, frame.width)
-    depth = frame.depth_m.reshape(-1)[flat]
-    color = frame.color.reshape(-1, 3)[flat] if frame.color is not None else None
+    depth = frame.depth_m.reshape(-1).index_select(0, flat)
+    color = frame.color.reshape(-1, 3).index_select(0, flat) if frame.color is not None else None
     return PixelBatch(uv=uv, depth_m=depth, color=color)

@@ -294,8 +294,8 @@ def window_rays(window: list[Keyframe], rays_per_frame: int, generator: torch.Ge
     :func:`~.render.camera_rays` give the same rays (to the bit) and, up to the first order in ``delta``, the same
     gradients (tested)."""
     flat = [sample_valid_pixels(kf.data, rays_per_frame, generator) for kf in window]
-    depth = torch.cat([kf.data.depth_m.reshape(-1)[f] for kf, f in zip(window, flat, strict=True)])
-    colors = [None if kf.data.color is None else kf.data.color.reshape(-1, 3)[f]
+    depth = torch.cat([kf.data.depth_m.reshape(-1).index_select(0, f) for kf, f in zip(window, flat, strict=True)])
+    colors = [None if kf.data.color is None else kf.data.color.reshape(-1, 3).index_select(0, f)
               for kf, f in zip(window, flat, strict=True)]
     delta = torch.stack([kf.delta if train_poses and not kf.fixed else kf.delta.detach() for kf in window])
     with torch.no_grad():

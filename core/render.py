@@ -429,7 +429,7 @@ def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torc
         compact = flat.device.type == "cpu"
     if compact:
         inside = torch.nonzero(idx >= 0).squeeze(1)  # the one read-back: the count of samples inside the map
-        sdf_in, rgb_in = evaluate(flat[inside], idx[inside])
+        sdf_in, rgb_in = evaluate(flat.index_select(0, inside), idx.index_select(0, inside))
         sdf = sdf_in.new_zeros(n * s).index_copy(0, inside, sdf_in)
         rgb = None if rgb_in is None else rgb_in.new_zeros(n * s, 3).index_copy(0, inside, rgb_in)
     else:  # an SDFField must then accept points outside the map too (tests: analytic surfaces)

