@@ -264,6 +264,8 @@ def render_rays(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torc
     """
     if isinstance(field, SDFDecoder):
         field = NeuralField(voxel_map, field)
+    # the samples under the mask lie in hit voxels (index >= 0): the neural field skips its check (a read-back)
+    evaluate = field.evaluate_unchecked if isinstance(field, NeuralField) else field
     if origins.dim() != 2 or origins.shape[1] != 3:
         raise ShapeError("origins", tuple(origins.shape), "[N, 3]")
     if dirs.shape != origins.shape:
@@ -278,7 +280,9 @@ def render_rays(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torc
     t, mask = smp.t, smp.mask
     n, s = t.shape
     pts = origins[:, None, :] + dirs[:, None, :] * t[:, :, None]  # [N, S, 3]
-    sdf_v, rgb_v = field(pts[mask], smp.voxel_idx[mask])
+    inside = torch.nonzero(mask.reshape(-1)).squeeze(1)  # one read-back for both gathers
+    sdf_v, rgb_v = evaluate(pts.reshape(-1, 3).index_select(0, inside),
+                            smp.voxel_idx.reshape(-1).index_select(0, inside))
     sdf = sdf_v.new_zeros(n, s).masked_scatter(mask, sdf_v)
     rgb = None
     if rgb_v is not None:
