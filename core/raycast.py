@@ -44,8 +44,8 @@ _EVENT_BUDGET = 1 << 20
 _GPU_BUDGET_FACTOR = 4
 """On a GPU a chunk takes this many times :data:`_EVENT_BUDGET` (~600 MB at peak): each chunk costs ~130 operators
 (launches) and 4 read-backs whatever its size, and a 256x192 occlusion image of the synthetic room (0.2 m voxels) is
-walked in one chunk instead of three: 388 operators and 9 read-backs for the whole render instead of 652 and 17 (the
-same depth image; counted on a CPU with the budget raised)."""
+walked in one chunk instead of three, ~260 operators and 8 read-backs fewer (the same depth image; counted on a CPU
+with the budget raised)."""
 _COARSE_LEVELS = (1, 2, 3)
 """Octree levels considered for empty-space skipping (blocks of ``2**level`` voxels per axis)."""
 _COARSE_GAIN = 0.85
