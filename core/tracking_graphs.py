@@ -14,9 +14,9 @@ inputs into those buffers and replays: the same loop as the eager :func:`~.track
 iterations), the same operators, so the same results. The graphs read a copy of the map snapshot
 (:class:`StaticMap`, with spare rows for voxels the map allocates): a new snapshot of the same structure is copied into
 it; a map that outgrew its spare rows or its index grid's box, or a change of input shapes or options, is captured
-again (~74 ms of host time per capture on an H100 machine at the paper preset; ``python
-bench/bench_map_structure.py``: 9 and 4 captures in 200 mapping rounds of the synthetic room and 7-Scenes, none
-while revisiting, against 71 and 73 without spare rows). Capture uses the low-level API
+again (~75-105 ms of host time per capture on an H100 machine at the paper preset; ``python
+bench/bench_map_structure.py``: 1 and 0 captures after the first in 200 mapping rounds of the synthetic room and
+7-Scenes, against 71 and 73 without spare rows and 9 and 3 with a tight index-grid box). Capture uses the low-level API
 (``CUDAGraph.capture_begin``, thread-local capture mode, a stream of its own) so that it neither synchronises the
 device nor empties the allocator's cache under a mapping thread running beside it.
 

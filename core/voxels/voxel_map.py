@@ -93,6 +93,7 @@ again (``python bench/bench_map_structure.py``: 9 box changes in 200 mapping rou
 tight box, 1 with this one; 7-Scenes 3 and 0). Coarser grids stay tight (their occupancy ratio steers the ray
 caster's choice of grid)."""
 
+
 @dataclass(frozen=True)
 class MemoryReport:
     """Sizes of a :class:`VoxelMap` (and optionally its decoder), in counts and bytes."""

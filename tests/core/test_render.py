@@ -113,12 +113,22 @@ def test_intersection_chunking_does_not_change_the_result(monkeypatch, impl):
     assert_same_hits(chunked, whole)
 
 
-def test_a_gpu_walks_bigger_chunks_than_a_cpu():
-    """A chunk's fixed cost is launches and read-backs on a GPU: its budget is larger there (the results do not depend
-    on it: the test above)."""
+def test_a_gpu_walks_bigger_chunks_than_a_cpu(monkeypatch):
+    """A chunk's fixed cost is launches and read-backs on a GPU: its budget is larger there, so the same rays make
+    fewer chunks, each row in exactly one (the results do not depend on the chunking: the test above)."""
     cpu = raycast_module._event_budget(torch.device("cpu"))
-    assert cpu == raycast_module._EVENT_BUDGET
-    assert raycast_module._event_budget(torch.device("cuda")) == cpu * raycast_module._GPU_BUDGET_FACTOR > cpu
+    gpu = raycast_module._event_budget(torch.device("cuda"))
+    assert cpu == raycast_module._EVENT_BUDGET and gpu == cpu * raycast_module._GPU_BUDGET_FACTOR > cpu
+    planes = torch.randint(1, 40, (5000,), generator=torch.Generator().manual_seed(0))
+    monkeypatch.setattr(raycast_module, "_EVENT_BUDGET", 3000)  # a few hundred rays per CPU chunk
+    on_cpu = raycast_module._chunks(planes)
+    monkeypatch.setattr(raycast_module, "_event_budget", lambda device: 3000 * raycast_module._GPU_BUDGET_FACTOR)
+    as_on_gpu = raycast_module._chunks(planes)
+    assert len(as_on_gpu) < len(on_cpu)
+    for chunks in (on_cpu, as_on_gpu):
+        rows = torch.cat([r for r, _ in chunks])
+        assert torch.equal(rows.sort().values, torch.arange(planes.numel()))
+        assert all(int(planes[r].max()) <= p_max for r, p_max in chunks)
 
 
 # ---------------------------------------------------------------- fast intersection == reference
