@@ -18,7 +18,12 @@ first 10 frames with the ``cpu`` sizes; then:
   render, losses, Adam) with the fixed-shape band sampler and with the paper's voxel sampler (``mapping``
   on a checkout that has only the latter); this map has one or two keyframes, so the window is small;
 * ``mapping/band x4``: one :meth:`Mapper.step` over a window of 4 frames (frames 6-9, the first held fixed),
-  the size of a running session's window at the ``cpu`` preset (3 keyframes + the newest frame).
+  the size of a running session's window at the ``cpu`` preset (3 keyframes + the newest frame);
+* ``render/occlusion 256x192`` (and ``... fixed walk``): one depth image (AR occlusion, ``with_color`` false) at
+  frame 10's pose as a GPU renders it (one call of 65536 rays, the GPU's event budget), with the walk of
+  data-dependent shapes and with the fixed-shape walk (:func:`~voxfusion.core.render.render_rays_fixed`, a GPU's
+  default); "per iteration" is per image there. Each row also reads one small tensor back with ``.tolist()`` (the
+  chunk sizes; the sample count with the walk's doubt flag), which runs no operator on a CPU and is not counted.
 
 Where the engine computes one thing in two forms, one for a CPU and one with fewer operators for a GPU (the trilinear
 weights, ``core/field.py``), the GPU's form is counted (``--cpu-forms``: the CPU's). The band rows count the
@@ -168,10 +173,32 @@ def main(argv: list[str] | None = None) -> int:
                                    c["host_syncs"] - c["host_syncs_in_optimizer"],
                                "sync_ops_per_iteration": c["sync_ops"]}
 
-    print(f"{'scenario':<22}{'aten ops / it':>15}{'host syncs / it':>17}{'outside Adam':>14}")
+    # the occlusion render (256x192 depth, AR) as a GPU runs it: one call of 65536 rays with the GPU's event budget;
+    # the walk with data-dependent shapes (the CPU's) and the fixed-shape walk (the GPU's default), depth alone
+    from voxfusion.core import raycast, render
+
+    image = {"render/occlusion 256x192": False, "render/occlusion 256x192 fixed walk": True}
+    K = cap[10].K * torch.tensor([[256 / cap.width], [192 / cap.height], [1.0]]).numpy()
+    budget = raycast._event_budget
+    raycast._event_budget = lambda device: budget(torch.device("cuda"))
+    try:
+        for name, fixed in image.items():
+            if fixed and not hasattr(render, "render_rays_fixed"):
+                continue
+            kw = {"chunk": 65536, "with_color": False, "fixed_walk": fixed} if hasattr(render, "render_rays_fixed") \
+                else {"chunk": 65536}
+            snap, dec = mapper.voxels.snapshot(), mapper.decoder
+            c = count_ops(lambda: render.render_depth_image(snap, dec, K, cap[10].T_world_cam, 256, 192, cfg.render,
+                                                            **kw), args.repeats)
+            rows[name] = {"aten_ops_per_iteration": c["aten_ops"], "host_syncs_per_iteration": c["host_syncs"],
+                          "sync_ops_per_iteration": c["sync_ops"]}
+    finally:
+        raycast._event_budget = budget
+
+    print(f"{'scenario':<38}{'aten ops / it':>15}{'host syncs / it':>17}{'outside Adam':>14}")
     for name, r in rows.items():
         outside = r.get("host_syncs_outside_optimizer_per_iteration", r["host_syncs_per_iteration"])
-        print(f"{name:<22}{r['aten_ops_per_iteration']:>15.0f}{r['host_syncs_per_iteration']:>17.1f}{outside:>14.1f}")
+        print(f"{name:<38}{r['aten_ops_per_iteration']:>15.0f}{r['host_syncs_per_iteration']:>17.1f}{outside:>14.1f}")
     result = {"label": args.label, "machine": machine_info(), "command": " ".join(sys.argv),
               "forms": "cpu" if args.cpu_forms else "gpu",
               "map": "synthetic room 320x240 seed 0, frames 0-9 at reference poses, cpu sizes",

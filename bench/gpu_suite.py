@@ -144,15 +144,21 @@ class SuiteSizes:
     realtime_options: tuple[tuple[str, ...], ...] = ()
     """``realtime``: the synthetic session again with each of these option sets (e.g. the compiled tracker), so
     a default can be chosen from the rates it gives, not from iteration times alone."""
+    overfeed_hz: float | None = None
+    """``realtime``: the synthetic session again fed this much faster than ``feed_hz`` (None: not run). Fed at
+    30 Hz a session can track at most 30 frames/s (a little under, measured over the feed's window, which ends
+    after the last frame's own period), so the tracking target is read where frames come faster than it: how many
+    the tracker keeps up with (the realtime worker tracks the newest frame and drops the ones it had no time for)."""
 
 
-FULL = SuiteSizes(640, 480, 120, 5, 10, 30, 5, 10.0, 30.0, (256, 192), 30, 10.0)
+FULL = SuiteSizes(640, 480, 120, 5, 10, 30, 5, 10.0, 30.0, (256, 192), 30, 10.0, overfeed_hz=60.0)
 LEASE = SuiteSizes(640, 480, 60, 5, 10, 20, 3, 8.0, 30.0, (256, 192), 20, 6.0, capacity_max=16,
                    capacity_budget_s=100.0, capacity_round_timeout_s=60.0, sevenscenes_frames=100,
                    accel_map_frames=11, accel_iters=5,
                    accel_rounds=3, accel_variants=("float32 eager (reference)", "no CUDA graphs (eager tracker)",
                                                    "tracking compile", "mapping compile"),
-                   budget_s=360.0, realtime_options=(("tracking.cuda_graphs=false",), ("mapping.compile=true",)))
+                   budget_s=360.0, realtime_options=(("tracking.cuda_graphs=false",), ("mapping.compile=true",)),
+                   overfeed_hz=60.0)
 """``--lease``: every section of ``FULL`` at sizes that end in about 6 minutes on one GPU (the realtime feeds 8 s, the
 synthetic one again with the tracker's eager loop and with the compiled mapping step, warmed up first: the mapping
 rate is the GPU target still missed, host-bound, and compiling made a mapping iteration 1.8x faster in the third
@@ -376,17 +382,27 @@ def measure_iterations(frames: list[RGBDFrame], config: VoxFusionConfig, sizes: 
 
 
 def measure_render_and_mesh(slam: SlamSystem, frames: list[RGBDFrame], sizes: SuiteSizes) -> dict:
-    """Median / p90 latency of a ``render_wh`` depth image at a mid-capture pose, then one mesh extraction."""
+    """Median / p90 latency of a ``render_wh`` image at a mid-capture pose, read back to the host as the server
+    sends it: depth and validity (an occlusion request's default, ``with_color`` false: ``render_ms_*``) and with
+    colour too (``render_color_ms_*``); then one mesh extraction."""
     f = frames[len(frames) // 2]
     w, h = sizes.render_wh
     K = scale_intrinsics(f.K, (f.width, f.height), (w, h))
-    for _ in range(2):
-        slam.render_depth(K, f.T_world_cam, w, h)
-    times = sorted(_timed(lambda: slam.render_depth(K, f.T_world_cam, w, h))[1] for _ in range(sizes.render_repeats))
+
+    def render(with_color: bool) -> list[torch.Tensor]:
+        image = slam.render_depth(K, f.T_world_cam, w, h, with_color=with_color)
+        return [x.cpu() for x in image if x is not None]
+
+    row: dict = {"render_wh": [w, h]}
+    for key, with_color in (("render", False), ("render_color", True)):
+        for _ in range(2):
+            render(with_color)
+        times = sorted(_timed(lambda c=with_color: render(c))[1] for _ in range(sizes.render_repeats))
+        row |= {f"{key}_ms_median": statistics.median(times),
+                f"{key}_ms_p90": times[min(len(times) - 1, int(0.9 * len(times)))]}
     mesh, mesh_ms = _timed(slam.mesh)
-    return {"render_wh": [w, h], "render_ms_median": statistics.median(times),
-            "render_ms_p90": times[min(len(times) - 1, int(0.9 * len(times)))], "render_repeats": len(times),
-            "mesh_ms": mesh_ms, "mesh_vertices": len(mesh.vertices), "mesh_faces": len(mesh.faces)}
+    return {**row, "render_repeats": sizes.render_repeats, "mesh_ms": mesh_ms, "mesh_vertices": len(mesh.vertices),
+            "mesh_faces": len(mesh.faces)}
 
 
 # ----------------------------------------------------------------------------------------- capacity
@@ -608,6 +624,9 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
         done()
     if "realtime" not in args.skip:
         specs = [("synthetic", synth)]
+        if sizes.overfeed_hz:  # what the tracker keeps up with when frames come faster than the target rate
+            specs.append((f"synthetic, fed {sizes.overfeed_hz:g} Hz", dataclasses.replace(synth,
+                                                                                      feed_hz=sizes.overfeed_hz)))
         specs += [(f"synthetic, {' '.join(opts)}", dataclasses.replace(synth, overrides=(*synth.overrides, *opts)))
                   for opts in sizes.realtime_options]
         sevenscenes = args.sevenscenes or SEVENSCENES
@@ -735,6 +754,8 @@ def _print_tables(results: dict) -> None:
         rm = results["render_mesh"]
         rows += [{"what": f"render {rm['render_wh'][0]}x{rm['render_wh'][1]} depth [ms] (median)",
                   "value": rm["render_ms_median"]},
+                 {"what": f"render {rm['render_wh'][0]}x{rm['render_wh'][1]} depth and colour [ms] (median)",
+                  "value": rm.get("render_color_ms_median", "-")},
                  {"what": f"mesh extraction [ms] ({rm['mesh_faces']} faces)", "value": rm["mesh_ms"]}]
     for name, r in results.get("accel", {}).get("variants", {}).items():
         rows.append({"what": f"{name}: mapping / tracking speed-up vs float32 eager",

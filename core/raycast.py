@@ -32,12 +32,12 @@ from typing import NamedTuple
 
 import torch
 
-from .errors import ShapeError
+from .errors import ShapeError, ValidationError
 from .voxels import VoxelMap
 from .voxels.index_grid import VoxelIndexGrid
 from .voxels.morton import morton_encode_planar
 
-__all__ = ["VoxelHits", "intersect_voxels", "intersect_voxels_reference"]
+__all__ = ["VoxelHits", "intersect_voxels", "intersect_voxels_fixed", "intersect_voxels_reference", "fixed_walk_planes"]
 
 _EVENT_BUDGET = 1 << 20
 """Grid-plane crossings per intersection chunk on a CPU (~150 B each at peak: a chunk's work stays in cache)."""
@@ -282,13 +282,17 @@ def _plane_t(planes: torch.Tensor, block: int, v: float, o: torch.Tensor, sd: to
     return (p.to(torch.float64) * v - o) / sd
 
 
-def _first_planes(w: _Walk, block: int, v: float) -> tuple[torch.Tensor, torch.Tensor]:
+def _first_planes(w: _Walk, block: int, v: float,
+                  rounds: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """Per sub-ray and axis, the first plane (in units of ``block`` voxels) crossed after ``ts``.
 
     Returns ``q [S, 3]`` int64 (the next plane along ``step``; the reference's first plane when none was
-    crossed yet) and ``entry0 [S]``, the last crossing at or before ``ts`` over all axes (-inf when
-    there is none: the first cell is then entered at ``t0``). Estimated from the position at ``ts``,
-    then corrected against the exact crossing times (the estimate is off by at most one plane).
+    crossed yet), ``entry0 [S]``, the last crossing at or before ``ts`` over all axes (-inf when
+    there is none: the first cell is then entered at ``t0``), and ``unsettled``. Estimated from the position at
+    ``ts``, then corrected against the exact crossing times (the estimate is off by at most one plane, so one
+    correction settles it and a second one moves nothing): until nothing moves (a read-back per round) when
+    ``rounds`` is None (``unsettled`` is then None), else exactly ``rounds`` corrections and ``unsettled``, a bool
+    scalar on the device, says whether the last one still moved a plane (the caller must not trust ``q`` then).
     """
     nz = w.d != 0
     up = w.step > 0
@@ -298,18 +302,72 @@ def _first_planes(w: _Walk, block: int, v: float) -> tuple[torch.Tensor, torch.T
     pos = (w.o + w.d * ts) / (v * block)
     q = torch.where(up, torch.maximum(first, torch.floor(pos).to(torch.int64) + 1),
                     torch.where(w.step < 0, torch.minimum(first, torch.ceil(pos).to(torch.int64) - 1), first))
-    for _ in range(8):
+    unsettled = None
+    for _ in range(8 if rounds is None else rounds):
         back = nz & (q != first) & (_plane_t(q - w.step, block, v, w.o, w.sd) > ts)
         q = q - w.step * back
         fwd = nz & (_plane_t(q, block, v, w.o, w.sd) <= ts)
         q = q + w.step * fwd
-        if not bool((back | fwd).any()):
+        unsettled = (back | fwd).any()
+        if rounds is None and not bool(unsettled):
+            unsettled = None
             break
-    else:  # pragma: no cover - crossing times increase with the plane index
+    if rounds is None and unsettled is not None:  # pragma: no cover - crossing times increase with the plane index
         raise RuntimeError("ray marching: the first plane after ts did not converge")
     crossed = nz & (q != first)
     t_prev = torch.where(crossed, _plane_t(q - w.step, block, v, w.o, w.sd), torch.full_like(w.o, -math.inf))
-    return q, t_prev.max(-1).values
+    return q, t_prev.max(-1).values, unsettled
+
+
+class _Crossings(NamedTuple):
+    """One walk's grid-plane crossings (:func:`_crossings`), ``S`` sub-rays, ``E = 3 * n_planes`` crossings each.
+
+    ``t_sorted [S, E]`` float64 crossing times, ascending (inf for the planes at or beyond ``t1``); ``flat [S, E +
+    1]`` int64 flat grid index of the cell entered at ``ts`` and after each crossing; ``tt [S, E + 2]`` the entry
+    time of each of those cells (``tt[:, c]``; its exit is ``tt[:, c + 1]``): ``entry0``, the crossings, inf;
+    ``rel0, rel1 [S, 3]`` the first and the last cell (after every live crossing) relative to the grid's origin;
+    ``live [S, 3, n_planes]``, ``order [S, E]`` which planes lie before ``t1`` and the sort's permutation;
+    ``unsettled``: :func:`_first_planes`'.
+    """
+
+    t_sorted: torch.Tensor
+    flat: torch.Tensor
+    tt: torch.Tensor
+    rel0: torch.Tensor
+    rel1: torch.Tensor
+    live: torch.Tensor
+    order: torch.Tensor
+    unsettled: torch.Tensor | None
+
+
+def _crossings(grid: VoxelIndexGrid, v: float, w: _Walk, n_planes: int, rounds: int | None = None) -> _Crossings:
+    """``n_planes`` crossings per axis of each sub-ray from the first one after ``ts`` (both walks' first half)."""
+    block = 1 << grid.level
+    s = w.o.shape[0]
+    dev = w.o.device
+    q, entry0, unsettled = _first_planes(w, block, v, rounds)
+    k = torch.arange(n_planes, device=dev, dtype=torch.int64)
+    t_ev = _plane_t(q[:, :, None] + w.step[:, :, None] * k, block, v, w.o[:, :, None], w.sd[:, :, None])
+    live = (w.d != 0)[:, :, None] & (t_ev < w.t1[:, None, None])
+    t_ev = torch.where(live, t_ev, torch.full_like(t_ev, math.inf))
+    t_sorted, order = torch.sort(t_ev.reshape(s, 3 * n_planes), dim=1, stable=True)
+    # flat grid index of the cell after each crossing: one cumulative sum of per-crossing strides
+    strides = grid.strides_tensor
+    delta = torch.where(live, (w.step * strides)[:, :, None], torch.zeros_like(q)[:, :, None])
+    moves = torch.cumsum(torch.gather(delta.reshape(s, 3 * n_planes), 1, order), 1)
+    rel0 = q - (w.step > 0).to(torch.int64) - grid.origin  # cell just after ts, relative to the grid
+    flat0 = (rel0 * strides).sum(-1, keepdim=True)
+    flat = torch.cat([flat0, flat0 + moves], 1)  # [S, E + 1]
+    rel1 = rel0 + w.step * live.sum(-1)
+    inf_col = torch.full((s, 1), math.inf, dtype=torch.float64, device=dev)
+    tt = torch.cat([entry0[:, None], t_sorted, inf_col], 1)  # entry of cell c = tt[c]
+    return _Crossings(t_sorted, flat, tt, rel0, rel1, live, order, unsettled)
+
+
+def _in_grid(grid: VoxelIndexGrid, rel0: torch.Tensor, rel1: torch.Tensor) -> torch.Tensor:
+    """``[S]`` bool: the walk's first and last cells lie in ``grid`` (a walk is monotone per axis, so then all of
+    its cells do)."""
+    return ((rel0 >= 0) & (rel0 < grid.size) & (rel1 >= 0) & (rel1 < grid.size)).all(-1)
 
 
 def _walk_chunk(grid: VoxelIndexGrid, v: float, w: _Walk,
@@ -321,39 +379,23 @@ def _walk_chunk(grid: VoxelIndexGrid, v: float, w: _Walk,
     ``exit`` are clamped to the ray's ``[t0, t1]`` exactly as in the reference, and only cells of
     positive length are kept.
     """
-    block = 1 << grid.level
     s = w.o.shape[0]
     dev = w.o.device
-    q, entry0 = _first_planes(w, block, v)
-    k = torch.arange(n_planes, device=dev, dtype=torch.int64)
-    t_ev = _plane_t(q[:, :, None] + w.step[:, :, None] * k, block, v, w.o[:, :, None], w.sd[:, :, None])
-    live = (w.d != 0)[:, :, None] & (t_ev < w.t1[:, None, None])
-    t_ev = torch.where(live, t_ev, torch.full_like(t_ev, math.inf))
-    t_sorted, order = torch.sort(t_ev.reshape(s, 3 * n_planes), dim=1, stable=True)
-    # flat grid index of the cell after each crossing: one cumulative sum of per-crossing strides
-    strides = torch.tensor(grid.strides, dtype=torch.int64, device=dev)
-    delta = torch.where(live, (w.step * strides)[:, :, None], torch.zeros_like(q)[:, :, None])
-    moves = torch.cumsum(torch.gather(delta.reshape(s, 3 * n_planes), 1, order), 1)
-    rel0 = q - (w.step > 0).to(torch.int64) - grid.origin  # cell just after ts, relative to the grid
-    flat0 = (rel0 * strides).sum(-1, keepdim=True)
-    flat = torch.cat([flat0, flat0 + moves], 1)  # [S, E + 1]
+    c = _crossings(grid, v, w, n_planes)
     # candidates: cells entered before te (the first one always is)
-    cand = torch.cat([torch.ones_like(flat0, dtype=torch.bool), t_sorted < w.te[:, None]], 1)
-    # a walk is monotone per axis: when its first and last cells lie in the grid, all of them do
-    rel1 = rel0 + w.step * live.sum(-1)
-    if not bool(((rel0 >= 0) & (rel0 < grid.size) & (rel1 >= 0) & (rel1 < grid.size)).all()):
+    cand = torch.cat([torch.ones_like(c.flat[:, :1], dtype=torch.bool), c.t_sorted < w.te[:, None]], 1)
+    if not bool(_in_grid(grid, c.rel0, c.rel1).all()):
         eye = torch.eye(3, dtype=torch.bool, device=dev)
-        axis_of = (live[None] & eye[:, None, :, None]).reshape(3, s, 3 * n_planes).to(torch.int64)
-        moves_axis = torch.cumsum(torch.gather(axis_of, 2, order.expand(3, s, 3 * n_planes)), 2)  # [3, S, E]
-        rel = rel0.t()[:, :, None] + torch.cat([torch.zeros_like(moves_axis[:, :, :1]), moves_axis], 2) \
+        axis_of = (c.live[None] & eye[:, None, :, None]).reshape(3, s, 3 * n_planes).to(torch.int64)
+        moves_axis = torch.cumsum(torch.gather(axis_of, 2, c.order.expand(3, s, 3 * n_planes)), 2)  # [3, S, E]
+        rel = c.rel0.t()[:, :, None] + torch.cat([torch.zeros_like(moves_axis[:, :, :1]), moves_axis], 2) \
             * w.step.t()[:, :, None]
         cand &= ((rel >= 0) & (rel < grid.size[:, None, None])).all(0)
-    flat = torch.where(cand, flat, torch.zeros_like(flat)).reshape(-1)
+    flat = torch.where(cand, c.flat, torch.zeros_like(c.flat)).reshape(-1)
     val = grid.table.index_select(0, flat)
     pos = torch.nonzero((val >= 0) & cand.reshape(-1)).squeeze(1)  # row-major: by sub-ray, then along it
-    r = torch.div(pos, flat0.new_tensor(t_sorted.shape[1] + 1), rounding_mode="floor")
-    inf_col = torch.full((s, 1), math.inf, dtype=torch.float64, device=dev)
-    tt = torch.cat([entry0[:, None], t_sorted, inf_col], 1).reshape(-1)  # entry of cell c = tt[c]
+    r = torch.div(pos, c.t_sorted.shape[1] + 1, rounding_mode="floor")
+    tt = c.tt.reshape(-1)
     lo, hi = w.t0[r], w.t1[r]
     entry = torch.minimum(torch.maximum(tt.index_select(0, pos + r), lo), hi)
     exit_ = torch.minimum(torch.maximum(tt.index_select(0, pos + r + 1), lo), hi)
@@ -476,3 +518,93 @@ def intersect_voxels(voxel_map: VoxelMap, origins: torch.Tensor, dirs: torch.Ten
     else:
         t_entry, t_exit, vidx, hit = _intersect_grid(voxel_map, grid, rays, max_hits)
     return VoxelHits(t_entry.to(out_dtype), t_exit.to(out_dtype), vidx, hit)
+
+
+# ---------------------------------------------------------------- fixed shapes
+_FIXED_PLANE_ROUNDS = 2
+"""Corrections of the first-plane estimate in the fixed-shape walk: the estimate is off by at most one plane, so the
+first settles it and the second confirms (it moving a plane makes the result doubtful, see :func:`_first_planes`)."""
+
+
+def fixed_walk_planes(grid: VoxelIndexGrid) -> int:
+    """Crossings per axis that cover any ray clipped to the occupied box of ``grid`` (a level-0 grid whose box is
+    the map's :attr:`~.voxels.VoxelMap.voxel_bounds`): a ray crosses at most ``box + 1`` planes of an axis inside
+    a box ``box`` cells long, the walk adds the first crossing after ``t1``, and one more absorbs rounding."""
+    if grid.box_shape is None:
+        raise ValidationError("grid", "has no box_shape (built by build_index_grid?)")
+    return max(grid.box_shape) + 3
+
+
+def _walk_fixed(grid: VoxelIndexGrid, v: float, w: _Walk, ok: torch.Tensor, n_planes: int,
+                max_hits: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`_walk_chunk` over whole rays (``ts = t0``, ``te = t1``) with every shape fixed and no read-back.
+
+    Returns ``entry, exit [S, max_hits]`` float64 (0 padded), ``value [S, max_hits]`` int64 (-1 padded): each
+    row's first ``max_hits`` cells with a value, in order, exactly as the chunked walk and the reference find them;
+    and ``doubt``, a bool scalar on the device: a row ``ok`` marks left the grid or needed more than ``n_planes``
+    crossings of an axis, or the first-plane search had not settled (the result must then not be used). Rows
+    ``ok`` does not mark get no cells (their origin and direction may be anything, non-finite too).
+    """
+    s = w.o.shape[0]
+    c = _crossings(grid, v, w, n_planes, rounds=_FIXED_PLANE_ROUNDS)
+    # doubtful: a row left the grid, needed more crossings than were generated (its last plane still lies before
+    # t1), or the first-plane search had not settled
+    short = c.live[:, :, -1].any(-1)
+    doubt = c.unsettled | (ok & (short | ~_in_grid(grid, c.rel0, c.rel1))).any()
+    # cells entered before t1 (the first one always is), on a ray that has any
+    cand = torch.cat([ok[:, None], (c.t_sorted < w.te[:, None]) & ok[:, None]], 1)
+    flat = torch.where(cand, c.flat, torch.zeros_like(c.flat)).clamp(0, grid.n_cells - 1)  # rows left out: anything
+    val = grid.table.index_select(0, flat.reshape(-1)).reshape(flat.shape)
+    lo, hi = w.t0[:, None], w.t1[:, None]
+    entry = torch.minimum(torch.maximum(c.tt[:, :-1], lo), hi)
+    exit_ = torch.minimum(torch.maximum(c.tt[:, 1:], lo), hi)
+    keep = (val >= 0) & cand & (exit_ > entry) & (entry < w.te[:, None])
+    # the k-th kept cell of a row goes to column k; cells past max_hits to a spare column, dropped
+    rank = torch.cumsum(keep.to(torch.int64), 1) - 1
+    slot = torch.where(keep & (rank < max_hits), rank, torch.full_like(rank, max_hits))
+    out_e = entry.new_zeros(s, max_hits + 1).scatter_(1, slot, entry)[:, :max_hits]
+    out_x = entry.new_zeros(s, max_hits + 1).scatter_(1, slot, exit_)[:, :max_hits]
+    out_v = torch.full((s, max_hits + 1), -1, dtype=torch.int64, device=entry.device)
+    out_v = out_v.scatter_(1, slot, val.to(torch.int64))[:, :max_hits]
+    return out_e, out_x, out_v, doubt
+
+
+@torch.no_grad()
+def intersect_voxels_fixed(voxel_map: VoxelMap, origins: torch.Tensor, dirs: torch.Tensor, max_distance_m: float,
+                           max_hits: int) -> tuple[VoxelHits, torch.Tensor] | None:
+    """:func:`intersect_voxels` with every shape fixed by the map and no read-back (a GPU's occlusion render).
+
+    The fast path reads the device back ~8 times (rays to walk, their lengths, chunk sizes, hit counts); here
+    every ray walks the same number of crossings, :func:`fixed_walk_planes` (known to the host from the map's
+    index grid), in row chunks of the device's event budget, and the hits fill ``min(max_hits, 3 * planes + 1)``
+    columns (a walk never has more cells), 0 / -1 padded beyond each ray's own.
+
+    Returns:
+        ``(hits, doubt)``: hits in ``origins``' dtype, identical to :func:`intersect_voxels`' apart from the padding
+        columns, and ``doubt``, a bool scalar on the device that is True where the fixed walk's assumptions failed
+        (read it with whatever the caller reads next; when True use :func:`intersect_voxels`). None where the map
+        is empty or has no dense index grid (:func:`intersect_voxels` then).
+    """
+    _check_rays(origins, dirs)
+    grid = voxel_map.index_grid() if voxel_map.voxel_bounds is not None else None
+    if grid is None or origins.shape[0] == 0:
+        return None
+    out_dtype = origins.dtype if origins.is_floating_point() else torch.float32
+    o, d, t0, t1, ok = _clip_rays(voxel_map, origins, dirs, max_distance_m, None)
+    v = voxel_map.voxel_size_m
+    bmin, bmax = voxel_map.voxel_bounds
+    # rays left out (t0 = t1 = 0) walk from a finite stand-in: no non-finite value reaches the integer casts
+    o = torch.where(ok[:, None], o, torch.zeros_like(o))
+    d = torch.where(ok[:, None], d, torch.ones_like(d))
+    cell0 = torch.floor((o + d * t0[:, None]) / v).clamp(bmin.double(), bmax.double()).to(torch.int64)
+    sd = torch.where(d != 0, d, torch.ones_like(d))
+    walk = _Walk(o, d, sd, torch.sign(d).to(torch.int64), cell0, t0, t1, t0, t1)
+    n_planes = fixed_walk_planes(grid)
+    columns = min(max_hits, 3 * n_planes + 1)
+    rows = max(1, _event_budget(o.device) // (3 * n_planes + 1))
+    parts = [_walk_fixed(grid, v, walk.take(slice(a, a + rows)), ok[a:a + rows], n_planes, columns)
+             for a in range(0, o.shape[0], rows)]
+    t_entry, t_exit, vidx = (torch.cat([p[k] for p in parts]) if len(parts) > 1 else parts[0][k] for k in range(3))
+    doubt = torch.stack([p[3] for p in parts]).any() if len(parts) > 1 else parts[0][3]
+    hit = (vidx >= 0).any(1)
+    return VoxelHits(t_entry.to(out_dtype), t_exit.to(out_dtype), vidx, hit), doubt

@@ -31,7 +31,7 @@ import torch
 
 from .errors import ConfigError, ShapeError, ValidationError
 from .field import NeuralField, SDFDecoder, SDFField
-from .raycast import VoxelHits, intersect_voxels, intersect_voxels_reference
+from .raycast import VoxelHits, intersect_voxels, intersect_voxels_fixed, intersect_voxels_reference
 from .voxels import VoxelMap
 
 __all__ = [
@@ -46,6 +46,7 @@ __all__ = [
     "sample_along_hits",
     "RenderOutput",
     "render_rays",
+    "render_rays_fixed",
     "composite",
     "band_samples",
     "band_jitter",
@@ -190,15 +191,34 @@ def sample_along_hits(hits: VoxelHits, dir_norm: torch.Tensor, step_m: float, tr
         return RaySamples(torch.zeros(n, 0, dtype=dtype, device=dev),
                           torch.full((n, 0), -1, dtype=torch.int64, device=dev),
                           torch.zeros(n, 0, dtype=torch.bool, device=dev))
-    dn = dir_norm.to(dev, torch.float64)[:, None]
+    lengths, cum, count = _sample_counts(hits, dir_norm, step_m)
+    return _place_samples(hits, dir_norm, lengths, cum, count, int(count.max()), training, generator)
+
+
+def _sample_counts(hits: VoxelHits, dir_norm: torch.Tensor,
+                   step_m: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`sample_along_hits`' first half (``M >= 1`` hit columns): each hit segment's length ``[N, M]``
+    (metres, float64, 0 for padding), their running sum ``[N, M]`` and each ray's sample count ``[N]`` int64."""
+    n, m = hits.voxel_idx.shape
+    dn = dir_norm.to(hits.t_entry.device, torch.float64)[:, None]
     seg_valid = hits.voxel_idx >= 0
-    L = torch.where(seg_valid, (hits.t_exit - hits.t_entry).to(torch.float64).clamp(min=0) * dn,
-                    torch.zeros_like(dn).expand(n, m))
-    cum = torch.cumsum(L, 1)
+    lengths = torch.where(seg_valid, (hits.t_exit - hits.t_entry).to(torch.float64).clamp(min=0) * dn,
+                          torch.zeros_like(dn).expand(n, m))
+    cum = torch.cumsum(lengths, 1)
     total = cum[:, -1]
     count = torch.ceil(total / step_m - 1e-9).clamp(min=0).to(torch.int64)
     count = torch.where(total > 0, count.clamp(min=1), torch.zeros_like(count))
-    s = int(count.max())
+    return lengths, cum, count
+
+
+def _place_samples(hits: VoxelHits, dir_norm: torch.Tensor, lengths: torch.Tensor, cum: torch.Tensor,
+                   count: torch.Tensor, s: int, training: bool, generator: torch.Generator | None) -> RaySamples:
+    """:func:`sample_along_hits`' second half: ``s`` (the largest ``count``) sample columns laid over the segments."""
+    n, m = hits.voxel_idx.shape
+    dev = hits.t_entry.device
+    dtype = hits.t_entry.dtype
+    dn = dir_norm.to(dev, torch.float64)[:, None]
+    total = cum[:, -1]
     j = torch.arange(s, device=dev, dtype=torch.float64)
     if training:
         gdev = generator.device if generator is not None else dev
@@ -208,7 +228,7 @@ def sample_along_hits(hits: VoxelHits, dir_norm: torch.Tensor, step_m: float, tr
     u = (j + jitter) * (total / count.clamp(min=1))[:, None]
     mask = j[None, :] < count[:, None]
     seg = torch.searchsorted(cum.contiguous(), u.contiguous(), right=True).clamp(max=m - 1)
-    start = (cum - L).gather(1, seg)
+    start = (cum - lengths).gather(1, seg)
     te = hits.t_entry.to(torch.float64).gather(1, seg)
     tx = hits.t_exit.to(torch.float64).gather(1, seg)
     t = torch.minimum(torch.maximum(te + (u - start) / dn, te), tx)
@@ -248,7 +268,7 @@ class RenderOutput:
 
 def render_rays(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torch.Tensor, dirs: torch.Tensor,
                 config: RenderConfig, training: bool = False, generator: torch.Generator | None = None,
-                t_far: torch.Tensor | None = None) -> RenderOutput:
+                t_far: torch.Tensor | None = None, with_color: bool = True) -> RenderOutput:
     """Render depth (and colour) along rays (paper eq. 1-4).
 
     Args:
@@ -261,11 +281,18 @@ def render_rays(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torc
         training: stratified jittered samples (True) or deterministic midpoints (False).
         generator: RNG for the jitter.
         t_far: optional ``[N]`` per-ray cap on ``t`` in addition to ``D_max``.
+        with_color: False skips a neural field's colour head (``color`` is then None; depth-only callers).
     """
-    if isinstance(field, SDFDecoder):
-        field = NeuralField(voxel_map, field)
-    # the samples under the mask lie in hit voxels (index >= 0): the neural field skips its check (a read-back)
-    evaluate = field.evaluate_unchecked if isinstance(field, NeuralField) else field
+    origins, dirs, dn = _rays_on_map(voxel_map, origins, dirs)
+    hits = intersect_voxels(voxel_map, origins, dirs, config.max_distance_m,
+                            config.max_hits_for(voxel_map.voxel_size_m), t_far)
+    smp = sample_along_hits(hits, dn, config.step_ratio * voxel_map.voxel_size_m, training, generator)
+    return _shade(voxel_map, field, origins, dirs, dn, smp, hits.hit, config, with_color)
+
+
+def _rays_on_map(voxel_map: VoxelMap, origins: torch.Tensor,
+                 dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Checked rays in the map's device and dtype, and each direction's length ``[N]`` (metres per unit ``t``)."""
     if origins.dim() != 2 or origins.shape[1] != 3:
         raise ShapeError("origins", tuple(origins.shape), "[N, 3]")
     if dirs.shape != origins.shape:
@@ -273,21 +300,51 @@ def render_rays(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torc
     dtype = voxel_map.embeddings.dtype
     origins = origins.to(voxel_map.device, dtype)
     dirs = dirs.to(voxel_map.device, dtype)
-    dn = dirs.detach().norm(dim=-1)
-    hits = intersect_voxels(voxel_map, origins, dirs, config.max_distance_m,
-                            config.max_hits_for(voxel_map.voxel_size_m), t_far)
-    smp = sample_along_hits(hits, dn, config.step_ratio * voxel_map.voxel_size_m, training, generator)
+    return origins, dirs, dirs.detach().norm(dim=-1)
+
+
+def _shade(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torch.Tensor, dirs: torch.Tensor,
+           dn: torch.Tensor, smp: RaySamples, hit: torch.Tensor, config: RenderConfig,
+           with_color: bool) -> RenderOutput:
+    """The field at the samples inside the map (one read-back: which they are) and :func:`composite`."""
+    if isinstance(field, SDFDecoder):
+        field = NeuralField(voxel_map, field)
+    # the samples under the mask lie in hit voxels (index >= 0): the neural field skips its check (a read-back)
+    neural = isinstance(field, NeuralField)
+    evaluate = field.evaluate_unchecked if neural else field
     t, mask = smp.t, smp.mask
     n, s = t.shape
     pts = origins[:, None, :] + dirs[:, None, :] * t[:, :, None]  # [N, S, 3]
     inside = torch.nonzero(mask.reshape(-1)).squeeze(1)  # one read-back for both gathers
-    sdf_v, rgb_v = evaluate(pts.reshape(-1, 3).index_select(0, inside),
-                            smp.voxel_idx.reshape(-1).index_select(0, inside))
+    args = (pts.reshape(-1, 3).index_select(0, inside), smp.voxel_idx.reshape(-1).index_select(0, inside))
+    sdf_v, rgb_v = evaluate(*args, with_color=False) if neural and not with_color else evaluate(*args)
     sdf = sdf_v.new_zeros(n, s).masked_scatter(mask, sdf_v)
     rgb = None
-    if rgb_v is not None:
+    if rgb_v is not None and with_color:
         rgb = rgb_v.new_zeros(n, s, 3).masked_scatter(mask[:, :, None].expand(n, s, 3), rgb_v)
-    return composite(sdf, rgb, t, mask, dn, hits.hit, config)
+    return composite(sdf, rgb, t, mask, dn, hit, config)
+
+
+@torch.no_grad()
+def render_rays_fixed(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torch.Tensor, dirs: torch.Tensor,
+                      config: RenderConfig, with_color: bool = True) -> RenderOutput | None:
+    """:func:`render_rays` in inference mode (midpoint samples, no ``t_far``) with the ray walk of fixed shapes
+    (:func:`~.raycast.intersect_voxels_fixed`): two read-backs in all (the sample count together with the walk's
+    doubt flag, then the samples inside the map) where :func:`render_rays` has ~10, for a GPU, where each one
+    waits for the device. The same result (the walk's padding adds nothing); None where the fixed walk does not
+    apply (no dense index grid) or doubts its result: call :func:`render_rays` then."""
+    origins, dirs, dn = _rays_on_map(voxel_map, origins, dirs)
+    got = intersect_voxels_fixed(voxel_map, origins, dirs, config.max_distance_m,
+                                 config.max_hits_for(voxel_map.voxel_size_m))
+    if got is None:
+        return None
+    hits, doubt = got
+    lengths, cum, count = _sample_counts(hits, dn, config.step_ratio * voxel_map.voxel_size_m)
+    s, doubtful = torch.stack([count.max(), doubt.to(torch.int64)]).tolist()  # the walk's one read-back
+    if doubtful:
+        return None
+    smp = _place_samples(hits, dn, lengths, cum, count, s, training=False, generator=None)
+    return _shade(voxel_map, field, origins, dirs, dn, smp, hits.hit, config, with_color)
 
 
 def composite(sdf: torch.Tensor, rgb: torch.Tensor | None, t: torch.Tensor, mask: torch.Tensor,
@@ -465,21 +522,30 @@ def image_chunk_rays(device: torch.device) -> int:
 @torch.no_grad()
 def render_depth_image(voxel_map: VoxelMap, field: SDFField | SDFDecoder, K: torch.Tensor | np.ndarray,
                        T_world_cam: torch.Tensor | np.ndarray, width: int, height: int, config: RenderConfig,
-                       chunk: int | None = None) -> RenderedImage:
+                       chunk: int | None = None, with_color: bool = True,
+                       fixed_walk: bool | None = None) -> RenderedImage:
     """Render a full depth (and colour) image in inference mode, ``chunk`` rays at a time (None:
     :func:`image_chunk_rays` for the map's device).
 
-    Used for AR occlusion and evaluation. ``K`` is for the ``width x height`` resolution.
+    Used for AR occlusion and evaluation. ``K`` is for the ``width x height`` resolution. ``with_color=False``
+    renders depth alone (``color`` None; the colour head is skipped). ``fixed_walk`` (None: on a GPU) walks the
+    rays with fixed shapes (:func:`render_rays_fixed`: fewer read-backs, the same image), falling back to
+    :func:`render_rays` where that walk does not apply.
     """
     if chunk is None:
         chunk = image_chunk_rays(voxel_map.device)
     if chunk < 1:
         raise ValidationError("chunk", f"must be >= 1, got {chunk}")
+    if fixed_walk is None:
+        fixed_walk = voxel_map.device.type != "cpu"
     T = _as_tensor(T_world_cam, "T_world_cam", (4, 4), voxel_map.device)
     origins, dirs = camera_rays(K, T, width=width, height=height, dtype=voxel_map.embeddings.dtype)
     depth_parts, color_parts, valid_parts = [], [], []
     for s in range(0, origins.shape[0], chunk):
-        out = render_rays(voxel_map, field, origins[s:s + chunk], dirs[s:s + chunk], config, training=False)
+        o, d = origins[s:s + chunk], dirs[s:s + chunk]
+        out = render_rays_fixed(voxel_map, field, o, d, config, with_color) if fixed_walk else None
+        if out is None:
+            out = render_rays(voxel_map, field, o, d, config, training=False, with_color=with_color)
         valid = out.surface & out.hit
         depth_parts.append(torch.where(valid, out.depth, torch.zeros_like(out.depth)))
         valid_parts.append(valid)

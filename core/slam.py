@@ -184,10 +184,12 @@ class MapSnapshot:
         return save_checkpoint(path, self, config, trajectory)
 
     def render(self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int,
-               config: RenderConfig) -> RenderedImage:
+               config: RenderConfig, with_color: bool = True) -> RenderedImage:
         """Depth (and colour) at a camera: ``K`` ``[3, 3]``, ``T_world_cam`` ``[4, 4]`` camera-to-world (OpenCV
-        axes, metres), an image of ``width`` x ``height`` pixels (:func:`.render.render_depth_image`)."""
-        return render_depth_image(self.voxels, self.decoder, K, T_world_cam, width, height, config)
+        axes, metres), an image of ``width`` x ``height`` pixels (:func:`.render.render_depth_image`);
+        ``with_color=False``: depth alone (AR occlusion), without the colour head's work."""
+        return render_depth_image(self.voxels, self.decoder, K, T_world_cam, width, height, config,
+                                  with_color=with_color)
 
     def mesh(self, mesh_res: int, support: bool = True, colors: str = "images") -> trimesh.Trimesh:
         """Triangle mesh of the zero level set at ``mesh_res`` samples per voxel edge where observations
@@ -754,12 +756,14 @@ class SlamSystem:
                 map_version=self._snapshot.version if self._snapshot else 0, frames_retried=len(self.retried),
                 frames_relocalised=len(self.relocalised))
 
-    def render_depth(self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int) -> RenderedImage:
-        """Depth (and colour) rendered from the newest snapshot at a camera pose (AR occlusion)."""
+    def render_depth(self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int,
+                     with_color: bool = True) -> RenderedImage:
+        """Depth (and colour) rendered from the newest snapshot at a camera pose (AR occlusion;
+        :meth:`MapSnapshot.render`)."""
         snap = self.snapshot
         if snap is None:
             raise MapNotReadyError("the map is empty: no frame has been mapped yet")
-        return snap.render(K, T_world_cam, width, height, self.config.render)
+        return snap.render(K, T_world_cam, width, height, self.config.render, with_color=with_color)
 
     def mesh(self, mesh_res: int | None = None, snapshot: MapSnapshot | None = None) -> trimesh.Trimesh:
         """Mesh of ``snapshot`` (default: the newest) at ``mesh_res`` samples per voxel edge (default

@@ -130,4 +130,5 @@ class StoredMap:
     def render(self, req: RenderRequest) -> tuple[RenderedImage, int]:
         ckpt = self._checkpoint()
         snap = MapSnapshot.of(ckpt.mapper)
-        return snap.render(req.K(), req.T_world_cam_cv(), req.width, req.height, ckpt.config.render), snap.version
+        return snap.render(req.K(), req.T_world_cam_cv(), req.width, req.height, ckpt.config.render,
+                           with_color=req.with_color), snap.version

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 
@@ -51,11 +52,21 @@ class VoxelIndexGrid:
     border: int = 0
     """At least this many empty cells on every side of the occupied box (more where the box is aligned; >= 1:
     :meth:`lookup` clamps onto them)."""
+    box_shape: tuple[int, int, int] | None = None
+    """Cells per axis of the occupied box alone (the cells' bounding box, without the border and the alignment),
+    as Python ints; None where the builder did not say."""
 
     @property
     def strides(self) -> tuple[int, int, int]:
         """Flat-index step of one cell along x, y, z."""
         return (self.shape[1] * self.shape[2], self.shape[2], 1)
+
+    @cached_property
+    def strides_tensor(self) -> torch.Tensor:
+        """:attr:`strides` as an int64 ``[3]`` tensor on the table's device, computed there from :attr:`size` (no
+        copy from the host, which would wait for the device); cached (the grid is immutable)."""
+        sx, sy, sz = self.size.unbind()
+        return torch.stack([sy * sz, sz, torch.ones_like(sz)])
 
     @property
     def n_cells(self) -> int:
@@ -119,6 +130,7 @@ def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: in
     lo = cells.min(0).values - border
     hi = cells.max(0).values + border
     lo_xyz, hi_xyz = torch.stack([lo, hi]).tolist()  # the one read-back: the box as Python ints
+    box_shape = tuple(h - l + 1 - 2 * border for l, h in zip(lo_xyz, hi_xyz, strict=True))
     if align > 1:  # the same box on the device and in Python (floor division on both)
         lo_a = [c // align * align for c in lo_xyz]
         hi_a = [(c // align + 1) * align - 1 for c in hi_xyz]
@@ -137,4 +149,5 @@ def build_index_grid(voxel_coords: torch.Tensor, values: torch.Tensor, level: in
     # block is occupied (0) when any of its voxels is, whatever the order of the inactive (-1) ones
     table.scatter_reduce_(0, rel[:, 0] * sx + rel[:, 1] * sy + rel[:, 2], values.to(torch.int32), "amax")
     return VoxelIndexGrid(origin=lo, origin_xyz=tuple(lo_xyz), size=size, shape=shape,
-                          level=level, table=table, n_occupied=int((table >= 0).sum()), border=border)
+                          level=level, table=table, n_occupied=int((table >= 0).sum()), border=border,
+                          box_shape=box_shape)

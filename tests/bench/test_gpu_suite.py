@@ -43,7 +43,8 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path, monkeypatch):
     assert rt["frames_fed"] == round(gpu_suite.SMOKE.realtime_s * 30) and rt["preset"] == "synthetic+cpu"
     assert 0 <= rt["tracking_hz"] <= 31  # a busy CI machine may track none of the 9 frames in 0.3 s
     assert result["render_mesh"]["render_wh"] == list(gpu_suite.SMOKE.render_wh)
-    assert result["render_mesh"]["render_ms_median"] > 0 and result["render_mesh"]["mesh_ms"] > 0
+    rm = result["render_mesh"]
+    assert rm["render_ms_median"] > 0 and rm["render_color_ms_median"] > 0 and rm["mesh_ms"] > 0
     cap = result["capacity"]
     assert cap["isolation"] == "thread" and 1 <= len(cap["rows"]) <= 2 and cap["rows"][0]["sessions"] == 1
     assert set(result["memory"]) == {"iterations", "realtime/synthetic", "render_mesh", "accel", "capacity"}
@@ -111,14 +112,20 @@ def test_budget_starts_no_section_once_spent_and_says_which(tmp_path: Path):
 
 def test_realtime_options_run_the_synthetic_session_again_with_them(tmp_path: Path, monkeypatch):
     out = tmp_path / "gpu-smoke.json"
-    monkeypatch.setattr(gpu_suite, "SMOKE", dataclasses.replace(gpu_suite.SMOKE,
+    monkeypatch.setattr(gpu_suite, "SMOKE", dataclasses.replace(gpu_suite.SMOKE, overfeed_hz=45.0,
                                                                 realtime_options=(("tracking.sdf_points=128",),)))
     assert gpu_suite.main(["--smoke", "--skip", "iterations", "accel", "capacity", "render", "--out", str(out)]) == 0
-    realtime = json.loads(out.read_text())["realtime"]
-    assert list(realtime) == ["synthetic", "synthetic, tracking.sdf_points=128"]
-    assert all(r["frames_fed"] == round(gpu_suite.SMOKE.realtime_s * 30) for r in realtime.values())
-    assert [r["compile_warmup_s"] for r in realtime.values()] == [0.0, 0.0]  # nothing compiles: no warm-up
-    assert [r["graphs_compiled_during_feed"] for r in realtime.values()] == [0, 0]
+    result = json.loads(out.read_text())
+    realtime = result["realtime"]
+    assert list(realtime) == ["synthetic", "synthetic, fed 45 Hz", "synthetic, tracking.sdf_points=128"]
+    assert [r["feed_hz"] for r in realtime.values()] == [30.0, 45.0, 30.0]
+    fed = [round(gpu_suite.SMOKE.realtime_s * hz) for hz in (30, 45, 30)]
+    assert [r["frames_fed"] for r in realtime.values()] == fed
+    assert [r["compile_warmup_s"] for r in realtime.values()] == [0.0, 0.0, 0.0]  # nothing compiles: no warm-up
+    assert [r["graphs_compiled_during_feed"] for r in realtime.values()] == [0, 0, 0]
+    # every session is held to the tracking target, the over-fed one included
+    assert {v["where"] for v in result["targets"] if v["target"] == "realtime tracking Hz"} == {
+        f"realtime {key}" for key in realtime}
 
 
 def test_compiled_options_are_compiled_before_a_realtime_feed():
@@ -154,6 +161,8 @@ def test_lease_sizes_fit_a_short_slot():
     assert {"float32 eager (reference)", "no CUDA graphs (eager tracker)"} <= set(lease.accel_variants)
     # the realtime rates without the tracker's CUDA graphs too (the same process, the same GPU)
     assert ("tracking.cuda_graphs=false",) in lease.realtime_options
+    # the tracking rate read where frames come faster than the 30 Hz target, not capped by the feed
+    assert lease.overfeed_hz >= 2 * lease.feed_hz and gpu_suite.FULL.overfeed_hz >= 2 * gpu_suite.FULL.feed_hz
 
 
 def test_capacity_worker_waits_for_go_and_reports_one_session():

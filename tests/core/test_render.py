@@ -11,7 +11,7 @@ import torch
 import voxfusion.core.raycast as raycast_module
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import ConfigError, ShapeError
-from voxfusion.core.field import NeuralField, SDFDecoder
+from voxfusion.core.field import FieldConfig, NeuralField, SDFDecoder
 from voxfusion.core.geometry import backproject_depth, make_intrinsics
 from voxfusion.core.render import (
     RenderConfig,
@@ -19,9 +19,11 @@ from voxfusion.core.render import (
     camera_rays,
     image_chunk_rays,
     intersect_voxels,
+    intersect_voxels_fixed,
     intersect_voxels_reference,
     render_depth_image,
     render_rays,
+    render_rays_fixed,
     sample_along_hits,
 )
 from voxfusion.core.voxels import VoxelMap
@@ -277,6 +279,168 @@ def test_fast_intersection_on_cuda_equals_reference():
         assert_same_hits(fast, intersect_voxels_reference(vm, o.cuda(), d.cuda(), 10.0, 100, tf))
     assert torch.equal(fast.voxel_idx.cpu(), cpu.voxel_idx)
     torch.testing.assert_close(fast.t_entry.cpu(), cpu.t_entry, atol=1e-9, rtol=0)
+
+
+# ---------------------------------------------------------------- fixed-shape walk == fast intersection
+def assert_fixed_walk_exact(vm: VoxelMap, o: torch.Tensor, d: torch.Tensor, d_max: float, max_hits: int) -> None:
+    """The fixed walk's hits are the fast path's (bit-identical) plus padding columns that hold nothing, and it
+    has no doubt about them."""
+    fast = intersect_voxels(vm, o, d, d_max, max_hits)
+    fixed, doubt = intersect_voxels_fixed(vm, o, d, d_max, max_hits)
+    assert not bool(doubt)
+    m = fast.voxel_idx.shape[1]
+    assert fixed.voxel_idx.shape[1] >= m
+    assert_same_hits(VoxelHits(fixed.t_entry[:, :m], fixed.t_exit[:, :m], fixed.voxel_idx[:, :m], fixed.hit), fast)
+    assert (fixed.voxel_idx[:, m:] == -1).all() and (fixed.t_entry[:, m:] == 0).all()
+    assert (fixed.t_exit[:, m:] == 0).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fixed_walk_equals_fast_intersection_on_random_rays(seed):
+    vm = _random_sparse_map(seed)
+    o, d = _random_rays(300, seed + 30)
+    o[5], d[6], d[7] = math.nan, math.inf, 0.0  # rays without a walk get no hits, and do not upset the others
+    for max_hits, dtype in ((1000, torch.float64), (3, torch.float32), (1, torch.float64)):
+        assert_fixed_walk_exact(vm, o.to(dtype), d.to(dtype), 2.5, max_hits)
+    hits, _ = intersect_voxels_fixed(vm, o, d, 2.5, 1000)
+    assert not hits.hit[5:8].any() and hits.hit.any()
+
+
+@pytest.mark.parametrize("voxel,offset", [(0.25, 0), (0.2, -1234), (0.1, 300_000)])
+def test_fixed_walk_equals_fast_intersection_on_lattice_aligned_rays(voxel, offset):
+    """Origins on grid planes, edges and corners, tied crossings, tiny direction components, maps far out."""
+    g = torch.Generator().manual_seed(offset + 7)
+    coords = torch.stack(torch.meshgrid(*[torch.arange(-6, 6)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    vm = VoxelMap(voxel, seed=0)
+    vm.allocate((coords[torch.rand(coords.shape[0], generator=g) < 0.15].double() + 0.5 + offset) * voxel)
+    n = 600
+    o = (torch.randint(-8, 8, (n, 3), generator=g).double() + offset) * voxel
+    o[n // 2:] += torch.randint(0, 2, (n - n // 2, 3), generator=g).double() * voxel / 2
+    d = torch.randint(-3, 4, (n, 3), generator=g).double()
+    d[d.abs().sum(1) == 0] = 1.0
+    d[:50] *= 0.1
+    d[50:100, 0] = 1e-12
+    for d_max, max_hits in ((100.0, 1000), (3.0, 4)):
+        assert_fixed_walk_exact(vm, o, d, d_max, max_hits)
+
+
+@pytest.mark.parametrize("voxel", [0.2, 0.05])
+def test_fixed_walk_equals_fast_intersection_on_synthetic_room(voxel):
+    vm, views = _synthetic_room_map(voxel)
+    cfg = RenderConfig()
+    for f in views:
+        o, d = camera_rays(f.K, f.T_world_cam, width=64, height=48, dtype=torch.float32)
+        assert_fixed_walk_exact(vm, o, d, cfg.max_distance_m, cfg.max_hits_for(voxel))
+
+
+def test_fixed_walk_splits_its_rows_by_the_event_budget(monkeypatch):
+    vm = _random_sparse_map(4)
+    o, d = _random_rays(200, 41)
+    whole, _ = intersect_voxels_fixed(vm, o, d, 2.5, 1000)
+    monkeypatch.setattr(raycast_module, "_EVENT_BUDGET", 300)  # a few rays per chunk
+    chunked, doubt = intersect_voxels_fixed(vm, o, d, 2.5, 1000)
+    assert_same_hits(chunked, whole)
+    assert not bool(doubt)
+
+
+def test_fixed_walk_doubts_walks_it_cannot_vouch_for_and_the_image_falls_back():
+    """Rays clipped to a box larger than the dense grid (the walk leaves it), or a first-plane search cut short:
+    the walk says so on the device, and the image renders through the fast path instead, unchanged."""
+    cfg = RenderConfig(step_ratio=0.05, max_distance_m=5.0)
+    T = torch.eye(4)
+    vm = _band_map(sphere_sdf, 0.2, 1.0, 0.35)
+    want = render_depth_image(vm, sphere_sdf, K_TEST, T, 32, 24, cfg, fixed_walk=False)
+    o, d = camera_rays(K_TEST, T, width=32, height=24, dtype=torch.float32)
+    lo, hi = vm.voxel_bounds
+    wide = VoxelMap(0.2, seed=0)
+    wide.allocate(torch.as_tensor(vm.voxel_coords).double().add(0.5).mul(0.2))
+    wide._bounds = (lo - 20, hi + 20)  # beyond the grid's border and alignment
+    assert bool(intersect_voxels_fixed(wide, o, d, 5.0, 100)[1])
+    assert render_rays_fixed(wide, sphere_sdf, o, d, cfg) is None
+    got = render_depth_image(wide, sphere_sdf, K_TEST, T, 32, 24, cfg, fixed_walk=True)
+    for a, b in zip(got, render_depth_image(wide, sphere_sdf, K_TEST, T, 32, 24, cfg, fixed_walk=False), strict=True):
+        assert torch.equal(a, b)
+    for a, b in zip(render_depth_image(vm, sphere_sdf, K_TEST, T, 32, 24, cfg, fixed_walk=True), want, strict=True):
+        assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("block", [1, 4])
+def test_first_plane_search_in_fixed_rounds_is_the_search_until_settled(block):
+    """Two correction rounds (the fixed walk's) give what correcting until nothing moves gives, and say they
+    settled; a round that still moved is reported (the walk then doubts its result)."""
+    g = torch.Generator().manual_seed(block)
+    vm = _random_sparse_map(3)
+    o, d = _random_rays(400, 3)
+    rays = raycast_module._clip_rays(vm, o, d, 5.0, None)
+    o, d, t0, t1 = rays.o[rays.ok], rays.d[rays.ok], rays.t0[rays.ok], rays.t1[rays.ok]
+    ts = t0 + (t1 - t0) * torch.rand(t0.shape[0], generator=g, dtype=torch.float64)
+    lo, hi = vm.voxel_bounds
+    cell0 = torch.floor((o + d * t0[:, None]) / 0.2).clamp(lo.double(), hi.double()).to(torch.int64)
+    w = raycast_module._Walk(o, d, torch.where(d != 0, d, torch.ones_like(d)), torch.sign(d).to(torch.int64),
+                             cell0, t0, t1, ts, t1)
+    q_ref, entry_ref, none = raycast_module._first_planes(w, block, 0.2)
+    q, entry, unsettled = raycast_module._first_planes(w, block, 0.2, rounds=2)
+    assert none is None and not bool(unsettled)
+    assert torch.equal(q, q_ref) and torch.equal(entry, entry_ref)
+    q1, _, moved = raycast_module._first_planes(w, block, 0.2, rounds=1)
+    assert torch.equal(q1, q_ref) or bool(moved)
+
+
+def test_an_image_renders_the_same_with_the_fixed_walk_and_depth_alone_skips_colour():
+    """The fixed walk (a GPU's default) changes the read-backs, not the image; ``with_color=False`` gives the same
+    depth (the colour head skipped; the SDF row alone differs by float rounding) and no colour."""
+    vm, views = _synthetic_room_map(0.2)
+    decoder = SDFDecoder(FieldConfig(use_color=True))
+    cfg = RenderConfig()
+    f = views[0]
+    for field in (decoder, sphere_sdf):
+        for with_color in (True, False):
+            args = (vm, field, f.K, f.T_world_cam, 64, 48, cfg)
+            plain = render_depth_image(*args, with_color=with_color, fixed_walk=False)
+            fixed = render_depth_image(*args, with_color=with_color, fixed_walk=True)
+            for a, b in zip(plain, fixed, strict=True):
+                assert (a is None and b is None) or torch.equal(a, b)
+            assert (plain.color is None) == (not with_color)
+        full = render_depth_image(*args, with_color=True)
+        torch.testing.assert_close(plain.depth, full.depth, atol=1e-5, rtol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_fixed_walk_on_cuda_renders_the_fast_paths_image_with_fewer_waits():
+    """On a GPU the image goes through the fixed walk by default (it applies here), renders what the fast path
+    renders there (and, within float rounding, on the CPU), and waits for the device fewer times."""
+    import warnings
+
+    vm, views = _synthetic_room_map(0.2)
+    decoder = SDFDecoder(FieldConfig(use_color=True)).requires_grad_(False)
+    cfg = RenderConfig()
+    f = views[0]
+    cpu = render_depth_image(vm, decoder, f.K, f.T_world_cam, 64, 48, cfg, fixed_walk=False)
+    vm.to("cuda")
+    decoder.cuda()
+    o, d = camera_rays(f.K, f.T_world_cam, width=64, height=48, dtype=torch.float32)
+    assert render_rays_fixed(vm, decoder, o.cuda(), d.cuda(), cfg) is not None  # no doubt, no fall-back
+    for with_color in (True, False):
+        args = (vm, decoder, f.K, f.T_world_cam, 64, 48, cfg)
+        fixed = render_depth_image(*args, with_color=with_color)
+        plain = render_depth_image(*args, with_color=with_color, fixed_walk=False)
+        for a, b in zip(fixed, plain, strict=True):
+            assert (a is None and b is None) or torch.equal(a, b)
+    torch.testing.assert_close(fixed.depth.cpu(), cpu.depth, atol=1e-4, rtol=0)
+
+    def waits(fixed_walk: bool) -> int:
+        torch.cuda.synchronize()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                render_depth_image(vm, decoder, f.K, f.T_world_cam, 64, 48, cfg, with_color=False,
+                                   fixed_walk=fixed_walk)
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+        return sum("synchroniz" in str(w.message) for w in caught)
+
+    assert waits(True) < waits(False)
 
 
 # ---------------------------------------------------------------- rays and sampling
