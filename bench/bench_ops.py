@@ -179,6 +179,7 @@ def main(argv: list[str] | None = None) -> int:
 
     image = {"render/occlusion 256x192": False, "render/occlusion 256x192 fixed walk": True}
     K = cap[10].K * torch.tensor([[256 / cap.width], [192 / cap.height], [1.0]]).numpy()
+    snap = mapper.voxels.snapshot()
     budget = raycast._event_budget
     raycast._event_budget = lambda device: budget(torch.device("cuda"))
     try:
@@ -187,9 +188,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             kw = {"chunk": 65536, "with_color": False, "fixed_walk": fixed} if hasattr(render, "render_rays_fixed") \
                 else {"chunk": 65536}
-            snap, dec = mapper.voxels.snapshot(), mapper.decoder
-            c = count_ops(lambda: render.render_depth_image(snap, dec, K, cap[10].T_world_cam, 256, 192, cfg.render,
-                                                            **kw), args.repeats)
+            c = count_ops(lambda kw=kw: render.render_depth_image(snap, mapper.decoder, K, cap[10].T_world_cam, 256,
+                                                                  192, cfg.render, **kw), args.repeats)
             rows[name] = {"aten_ops_per_iteration": c["aten_ops"], "host_syncs_per_iteration": c["host_syncs"],
                           "sync_ops_per_iteration": c["sync_ops"]}
     finally:

@@ -7,7 +7,8 @@
 #
 # Usage: [GPU_PYTEST="TEST_PATHS"] [GPU_PROFILE=1] bash bench/gpu_lease.sh OUT_DIR [gpu_suite.py options]
 #   GPU_PYTEST: run these tests with pytest first (their CUDA tests; OUT_DIR/gpu-pytest.log); GPU_PROFILE=1: then,
-#   after the suite, bench/gpu_profile.py (OUT_DIR/gpu-profile.log); the suite
+#   after the suite, bench/gpu_profile.py (OUT_DIR/gpu-profile.log); GPU_COMPILE_WARMUP=1: then
+#   bench/bench_compile_warmup.py (OUT_DIR/compile-warmup*.json and .log); the suite
 #   writes OUT_DIR/gpu-<gpu>-lease.json (rewritten after every section, so a run cut short keeps what it
 #   measured) and OUT_DIR/gpu-lease.log. PYTHON=... picks the interpreter (default python3). With --smoke it runs the
 #   suite's CPU smoke sizes instead: the same setup, checked on a machine without CUDA.
@@ -63,4 +64,7 @@ log "bench/gpu_suite.py ${SIZE[*]} ${SEVEN[*]} $*"
 "$PY" bench/gpu_suite.py "${SIZE[@]}" --out-dir "$OUT" "${SEVEN[@]}" "$@" 2>&1 | tee "$OUT/gpu-lease.log"
 if [ -n "${GPU_PROFILE:-}" ]; then  # where a frame's time goes, the tracker's graphs on and off (~1 minute)
     "$PY" -P bench/gpu_profile.py 2>&1 | tee "$OUT/gpu-profile.log" || true
+fi
+if [ -n "${GPU_COMPILE_WARMUP:-}" ]; then  # mapping.compile's warm-up in fresh processes, cache cold then warm (~1.5 min)
+    "$PY" -P bench/bench_compile_warmup.py --out-dir "$OUT" 2>&1 | tee "$OUT/compile-warmup.log" || true
 fi

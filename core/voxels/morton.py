@@ -63,7 +63,10 @@ def _compact_bits(x: torch.Tensor) -> torch.Tensor:
 def check_coord_range(ijk: torch.Tensor, field: str, lo: int = MORTON_MIN_COORD,
                        hi: int = MORTON_MAX_COORD) -> None:
     """Raise ``ValidationError(field)`` unless every entry of ``ijk [..., 3]`` lies in ``[lo, hi]``."""
-    if ijk.numel() and (bool((ijk < lo).any()) or bool((ijk > hi).any())):
+    if ijk.numel() == 0:
+        return
+    smallest, largest = torch.stack(torch.aminmax(ijk)).tolist()  # one read-back
+    if smallest < lo or largest > hi:
         bad = ijk.reshape(-1, 3)[((ijk.reshape(-1, 3) < lo) | (ijk.reshape(-1, 3) > hi)).any(-1)][0]
         raise ValidationError(
             field,
