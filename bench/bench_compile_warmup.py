@@ -83,7 +83,10 @@ def main(argv: list[str] | None = None) -> int:
     from bench.gpu_suite import _slug
 
     machine = machine_info()
-    name = f"compile-warmup-{_slug(machine.get('cuda_device') or 'cpu')}{'-smoke' if args.smoke else ''}.json"
+    import torch
+
+    device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
+    name = f"compile-warmup-{_slug(device)}{'-smoke' if args.smoke else ''}.json"
     result = {"benchmark": "mapping.compile warm-up per fresh process", "machine": machine,
               "command": " ".join(sys.argv), "smoke": args.smoke, "runs": runs}
     write_json(args.out_dir / name, result)

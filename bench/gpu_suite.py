@@ -215,6 +215,14 @@ class RealtimeResult:
     """The tracker's CUDA graph sets captured during the whole session (one per map structure; None without them)."""
     graph_capture_ms: float | None = None
     """Host milliseconds those captures took (part of the tracking thread's time)."""
+    fuse_ms: float | None = None
+    """Median host milliseconds the mapping worker spent on a frame it only fused (allocation, surface marks,
+    evidence; no iterations: the frames a round catches up on) during the feed."""
+    optimize_ms: float | None = None
+    """Median host milliseconds of a frame fused and optimised (a round's last frame: its iterations)."""
+    frames_per_round: float | None = None
+    """Frames the mapping worker fused per round during the feed (a round fuses every frame tracked since the
+    last): with ``fuse_ms`` and ``optimize_ms``, where a round's time goes."""
 
     @property
     def holds(self) -> bool:
@@ -299,6 +307,13 @@ def run_realtime(frames: list[RGBDFrame], config: VoxFusionConfig, preset: str, 
         frames_mapped=s1.frames_mapped - s0.frames_mapped, dropped=s1.frames_dropped - s0.frames_dropped,
         lost=s1.frames_lost - s0.frames_lost, latency_ms=s1.latency_ms, first_map_s=first_map_s,
         keyframes=s1.keyframes, voxels=s1.voxels)
+    fused = [r.mapping for r in slam.records[s0.frames_tracked:] if r.mapping is not None]
+    only_fused = [m.time_ms for m in fused if m.iterations == 0]
+    optimized = [m.time_ms for m in fused if m.iterations > 0]
+    result = dataclasses.replace(
+        result, fuse_ms=statistics.median(only_fused) if only_fused else None,
+        optimize_ms=statistics.median(optimized) if optimized else None,
+        frames_per_round=len(fused) / max(1, s1.map_version - s0.map_version))
     graphs = getattr(slam.tracker, "_graphs", None)
     if graphs is not None:
         result = dataclasses.replace(result, graph_captures=graphs.captures, graph_capture_ms=1e3 * graphs.capture_s)
@@ -624,11 +639,12 @@ def run_suite(args: argparse.Namespace, on_section: Callable[[dict], None] = lam
         done()
     if "realtime" not in args.skip:
         specs = [("synthetic", synth)]
-        if sizes.overfeed_hz:  # what the tracker keeps up with when frames come faster than the target rate
+        variants = "variants" not in args.skip
+        if sizes.overfeed_hz and variants:  # what the tracker keeps up with when frames come faster than the target
             specs.append((f"synthetic, fed {sizes.overfeed_hz:g} Hz", dataclasses.replace(synth,
                                                                                       feed_hz=sizes.overfeed_hz)))
         specs += [(f"synthetic, {' '.join(opts)}", dataclasses.replace(synth, overrides=(*synth.overrides, *opts)))
-                  for opts in sizes.realtime_options]
+                  for opts in (sizes.realtime_options if variants else ())]
         sevenscenes = args.sevenscenes or SEVENSCENES
         if "sevenscenes" not in args.skip and not args.smoke and sevenscenes.is_dir():
             specs.append(("sevenscenes", dataclasses.replace(synth, capture=str(sevenscenes),
@@ -750,6 +766,10 @@ def _print_tables(results: dict) -> None:
                  {"what": f"realtime {key}: mapping rounds [1/s]", "value": r["mapping_rounds_per_s"]},
                  {"what": f"realtime {key}: dropped / lost", "value": f"{r['dropped']} / {r['lost']}"},
                  {"what": f"realtime {key}: pose latency [ms]", "value": r["latency_ms"]}]
+        if r.get("frames_per_round") is not None:
+            fuse, opt = (f"{r[k]:.1f}" if r.get(k) is not None else "-" for k in ("fuse_ms", "optimize_ms"))
+            rows.append({"what": f"realtime {key}: mapping [ms] per frame fused / optimised, frames per round",
+                         "value": f"{fuse} / {opt}, {r['frames_per_round']:.1f}"})
     if "render_mesh" in results:
         rm = results["render_mesh"]
         rows += [{"what": f"render {rm['render_wh'][0]}x{rm['render_wh'][1]} depth [ms] (median)",
@@ -791,7 +811,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iter-preset", default="paper", help="preset of the iterations section (default paper)")
     ap.add_argument("--set", action="append", default=[], help="override for every config, e.g. tracking.rays=512")
     ap.add_argument("--skip", nargs="*", default=[], choices=["iterations", "realtime", "sevenscenes", "render",
-                                                              "accel", "capacity"])
+                                                              "accel", "capacity", "variants"],
+                    help="sections to leave out (variants: the realtime section's over-fed and option sessions)")
     ap.add_argument("--lease", action="store_true",
                     help="CUDA, every section at sizes that end in ~6-7 minutes (a lent GPU's short slot)")
     ap.add_argument("--budget-s", type=float, default=None,

@@ -396,8 +396,6 @@ class Mapper:
         self._rng = random.Random(seed)
         self._frames_since_keyframe = 0
         self._n_integrated = 0
-        self.last_frame_pose: torch.Tensor | None = None
-        """Pose of the most recently integrated frame after its mapping round (refined if enabled)."""
         self.version = 0
         """Bumped after every optimisation round (cache key for meshes and renders)."""
 
@@ -473,7 +471,6 @@ class Mapper:
         if not is_kf:
             self._forget_pose(current)
         self._n_integrated += 1
-        self.last_frame_pose = current.T_world_cam
         return MappingStep(frame.index, is_kf, n_new, n_obs, iters, loss, (time.perf_counter() - t0) * 1e3,
                            inactive_voxels=self.voxels.n_voxels - self.voxels.n_active)
 

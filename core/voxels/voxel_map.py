@@ -556,14 +556,20 @@ class VoxelMap:
         for name, w in (("hit_weight", hit_weight), ("free_weight", free_weight)):
             if not (math.isfinite(w) and w >= 0):
                 raise ValidationError(name, f"must be a finite number >= 0, got {w!r}")
-        tables = []
-        for name, idx, table, w in (("hit_idx", hit_idx, self._voxel_hits, hit_weight),
-                                    ("free_idx", free_idx, self._voxel_free, free_weight)):
+        named = (("hit_idx", hit_idx), ("free_idx", free_idx))
+        for name, idx in named:
             if not isinstance(idx, torch.Tensor) or idx.dim() != 1:
                 raise ShapeError(name, tuple(getattr(idx, "shape", ())), "[K]")
-            idx = idx.to(self.device, torch.int64)
-            if idx.numel() and (int(idx.min()) < 0 or int(idx.max()) >= self.n_voxels):
-                raise ValidationError(name, f"voxel indices must be in [0, {self.n_voxels})")
+        indices = [idx.to(self.device, torch.int64) for _, idx in named]
+        checked = [(name, idx) for (name, _), idx in zip(named, indices, strict=True) if idx.numel()]
+        if checked:  # both index ranges in one read-back
+            ranges = torch.stack([torch.stack(torch.aminmax(idx)) for _, idx in checked]).tolist()
+            for (name, _), (lo, hi) in zip(checked, ranges, strict=True):
+                if lo < 0 or hi >= self.n_voxels:
+                    raise ValidationError(name, f"voxel indices must be in [0, {self.n_voxels})")
+        tables = []
+        for idx, table, w in zip(indices, (self._voxel_hits, self._voxel_free), (hit_weight, free_weight),
+                                 strict=True):
             if idx.numel():
                 table = table.index_add(0, idx, table.new_full((idx.numel(),), float(w)))
             tables.append(table)
@@ -663,10 +669,10 @@ class VoxelMap:
         if not isinstance(active, torch.Tensor) or active.shape != (self.n_voxels,):
             raise ShapeError("active", tuple(getattr(active, "shape", ())), f"({self.n_voxels},)")
         active = active.to(self.device, torch.bool)
-        changed = int((active != self._voxel_active).sum())
+        changed, n_inactive = torch.stack([(active != self._voxel_active).sum(), (~active).sum()]).tolist()
         if changed:
             self._voxel_active = active.clone()
-            self._n_inactive = int((~active).sum())
+            self._n_inactive = n_inactive
             self._invalidate_grids()
         return changed
 
