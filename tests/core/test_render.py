@@ -163,23 +163,31 @@ def test_fast_intersection_equals_reference_on_random_rays(monkeypatch, level, n
         assert_same_hits(intersect_voxels(*args), intersect_voxels_reference(*args))
 
 
-@pytest.mark.parametrize("level", [0, 2])
-@pytest.mark.parametrize("voxel,offset", [(0.25, 0), (0.2, -1234), (0.1, 300_000)])
-def test_fast_intersection_equals_reference_on_lattice_aligned_rays(monkeypatch, level, voxel, offset):
-    """Origins on grid planes, edges and corners; integer-ratio directions that cross edges and corners
-    exactly (tied crossings); zero and tiny direction components; maps near and far from the origin."""
-    _force_coarse_level(monkeypatch, level)
+def _lattice_map_and_rays(voxel: float, offset: int, n: int = 600):
+    """A sparse map of voxels ``offset`` voxels from the origin, and ``n`` rays from lattice points, edge midpoints
+    and face centres along integer-ratio directions (tied crossings), with tiny and zero components; returns the
+    map, origins, directions and the generator for more draws."""
     g = torch.Generator().manual_seed(offset + 7)
     coords = torch.stack(torch.meshgrid(*[torch.arange(-6, 6)] * 3, indexing="ij"), -1).reshape(-1, 3)
     vm = VoxelMap(voxel, seed=0)
     vm.allocate((coords[torch.rand(coords.shape[0], generator=g) < 0.15].double() + 0.5 + offset) * voxel)
-    n = 600
     o = (torch.randint(-8, 8, (n, 3), generator=g).double() + offset) * voxel
     o[n // 2:] += torch.randint(0, 2, (n - n // 2, 3), generator=g).double() * voxel / 2
     d = torch.randint(-3, 4, (n, 3), generator=g).double()
     d[d.abs().sum(1) == 0] = 1.0
     d[:50] *= 0.1
     d[50:100, 0] = 1e-12
+    return vm, o, d, g
+
+
+@pytest.mark.parametrize("level", [0, 2])
+@pytest.mark.parametrize("voxel,offset", [(0.25, 0), (0.2, -1234), (0.1, 300_000)])
+def test_fast_intersection_equals_reference_on_lattice_aligned_rays(monkeypatch, level, voxel, offset):
+    """Origins on grid planes, edges and corners; integer-ratio directions that cross edges and corners
+    exactly (tied crossings); zero and tiny direction components; maps near and far from the origin."""
+    _force_coarse_level(monkeypatch, level)
+    vm, o, d, g = _lattice_map_and_rays(voxel, offset)
+    n = o.shape[0]
     t_far = torch.rand(n, generator=g, dtype=torch.float64) * 5
     for d_max, max_hits in ((100.0, 1000), (3.0, 4)):
         for tf in (None, t_far):
@@ -309,17 +317,7 @@ def test_fixed_walk_equals_fast_intersection_on_random_rays(seed):
 @pytest.mark.parametrize("voxel,offset", [(0.25, 0), (0.2, -1234), (0.1, 300_000)])
 def test_fixed_walk_equals_fast_intersection_on_lattice_aligned_rays(voxel, offset):
     """Origins on grid planes, edges and corners, tied crossings, tiny direction components, maps far out."""
-    g = torch.Generator().manual_seed(offset + 7)
-    coords = torch.stack(torch.meshgrid(*[torch.arange(-6, 6)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    vm = VoxelMap(voxel, seed=0)
-    vm.allocate((coords[torch.rand(coords.shape[0], generator=g) < 0.15].double() + 0.5 + offset) * voxel)
-    n = 600
-    o = (torch.randint(-8, 8, (n, 3), generator=g).double() + offset) * voxel
-    o[n // 2:] += torch.randint(0, 2, (n - n // 2, 3), generator=g).double() * voxel / 2
-    d = torch.randint(-3, 4, (n, 3), generator=g).double()
-    d[d.abs().sum(1) == 0] = 1.0
-    d[:50] *= 0.1
-    d[50:100, 0] = 1e-12
+    vm, o, d, _ = _lattice_map_and_rays(voxel, offset)
     for d_max, max_hits in ((100.0, 1000), (3.0, 4)):
         assert_fixed_walk_exact(vm, o, d, d_max, max_hits)
 
