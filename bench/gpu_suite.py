@@ -217,7 +217,8 @@ class RealtimeResult:
     """Host milliseconds those captures took (part of the tracking thread's time)."""
     fuse_ms: float | None = None
     """Median host milliseconds the mapping worker spent on a frame it only fused (allocation, surface marks,
-    evidence; no iterations: the frames a round catches up on) during the feed."""
+    evidence; no iterations: the frames a round catches up on) during the feed: its share of its round's fusion
+    where the engine fuses a round's frames together (:meth:`~voxfusion.core.mapping.Mapper.integrate_batch`)."""
     optimize_ms: float | None = None
     """Median host milliseconds of a frame fused and optimised (a round's last frame: its iterations)."""
     frames_per_round: float | None = None

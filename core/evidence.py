@@ -57,7 +57,8 @@ from .errors import ConfigError, ShapeError, ValidationError
 from .framedata import FrameData
 from .voxels import VoxelMap
 
-__all__ = ["EvidenceConfig", "EvidenceUpdate", "free_space_voxels", "evidence_active", "observe_frame"]
+__all__ = ["EvidenceConfig", "EvidenceUpdate", "free_space_voxels", "evidence_active", "observe_frame",
+           "observe_frames"]
 
 _SAMPLE_BUDGET = 1 << 20
 """Ray samples handled at once by :func:`free_space_voxels` (bounds its memory, ~100 MB peak)."""
@@ -232,6 +233,23 @@ def observe_frame(voxel_map: VoxelMap, frame: FrameData, T_world_cam: torch.Tens
         point_voxels: ``[N]`` int64 the allocated voxel of each point (-1: none) when the caller has looked
             them up already (:meth:`~.voxels.VoxelMap.locate_surface_points`); None: looked up here.
     """
+    return observe_frames(voxel_map, [(frame, T_world_cam)], points_world, config, point_weight, point_voxels)
+
+
+def observe_frames(voxel_map: VoxelMap, frames: list[tuple[FrameData, torch.Tensor]], points_world: torch.Tensor,
+                   config: EvidenceConfig, point_weight: float = 1.0,
+                   point_voxels: torch.Tensor | None = None) -> EvidenceUpdate:
+    """:func:`observe_frame` for several posed frames at once (a realtime mapper fusing the frames it caught up on):
+    their depth points' and free-space rays' evidence added together, then the active mask updated once. The
+    evidence is the frames' in turn (sums of counts) except that each frame's rays also count as free space the
+    voxels the later frames of the batch allocated, and the mask is not updated between the frames.
+
+    Args:
+        frames: ``(frame, T_world_cam [4, 4])`` pairs, after all their points were allocated.
+        points_world: ``[N, 3]`` all the frames' depth points, concatenated; the rest as :func:`observe_frame`.
+    """
+    if not frames:
+        raise ValidationError("frames", "needs at least one (frame, T_world_cam) pair")
     if points_world.dim() != 2 or points_world.shape[-1] != 3:
         raise ShapeError("points_world", tuple(points_world.shape), "[N, 3]")
     if point_voxels is None:
@@ -239,13 +257,18 @@ def observe_frame(voxel_map: VoxelMap, frame: FrameData, T_world_cam: torch.Tens
     elif point_voxels.shape != points_world.shape[:1]:
         raise ShapeError("point_voxels", tuple(point_voxels.shape), f"[{points_world.shape[0]}]")
     hit_idx = point_voxels[point_voxels >= 0]
-    stride = config.ray_stride_px(frame.height, frame.width)
-    free_idx = free_space_voxels(voxel_map, frame.depth_m, frame.K, T_world_cam, stride, config.margin_m,
-                                 config.sample_step_ratio * voxel_map.voxel_size_m)
-    free_weight = float(stride ** 2)
-    voxel_map.add_evidence(hit_idx, free_idx, point_weight, free_weight)
+    free_by_weight: dict[float, list[torch.Tensor]] = {}  # a frame's rays stand for stride**2 pixels each
+    for frame, T_world_cam in frames:
+        stride = config.ray_stride_px(frame.height, frame.width)
+        free_by_weight.setdefault(float(stride ** 2), []).append(free_space_voxels(
+            voxel_map, frame.depth_m, frame.K, T_world_cam, stride, config.margin_m,
+            config.sample_step_ratio * voxel_map.voxel_size_m))
+    free_px = 0.0
+    for i, (free_weight, parts) in enumerate(free_by_weight.items()):
+        free_idx = parts[0] if len(parts) == 1 else torch.cat(parts)
+        voxel_map.add_evidence(hit_idx if i == 0 else hit_idx[:0], free_idx, point_weight, free_weight)
+        free_px += float(free_idx.numel()) * free_weight
     changed = voxel_map.set_active(evidence_active(voxel_map.voxel_hits, voxel_map.voxel_free, config,
                                                    voxel_map.surface_cell_counts()))
-    return EvidenceUpdate(hit_px=float(hit_idx.numel()) * point_weight,
-                          free_px=float(free_idx.numel()) * free_weight, changed=changed,
+    return EvidenceUpdate(hit_px=float(hit_idx.numel()) * point_weight, free_px=free_px, changed=changed,
                           n_inactive=voxel_map.n_voxels - voxel_map.n_active)

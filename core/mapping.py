@@ -32,7 +32,7 @@ import torch
 from .compiled import CompiledFunction
 from .depth_filter import DepthFilterConfig
 from .errors import ConfigError, ValidationError
-from .evidence import EvidenceConfig, observe_frame
+from .evidence import EvidenceConfig, observe_frames
 from .field import FieldConfig, SDFDecoder, query
 from .framedata import FrameData, flat_uv, sample_valid_pixels
 from .lie import perturb_right
@@ -366,6 +366,10 @@ def keyframe_color_views(keyframes: list[Keyframe] | tuple[Keyframe, ...]) -> li
             for kf in list(keyframes) if kf.data.color is not None]
 
 
+FUSE_BATCH_MAX = 16
+"""Frames :meth:`Mapper.integrate_batch` fuses in one pass at most (a mapper far behind fuses in several)."""
+
+
 class Mapper:
     """Owns the map (voxels + decoder) and fuses posed frames into it.
 
@@ -438,41 +442,80 @@ class Mapper:
         ``optimize=False`` only allocates voxels and applies the keyframe test (a realtime mapper that
         fell behind does this for the frames it skips, so no geometry or keyframe is lost).
         """
+        return self.integrate_batch([(frame, T_world_cam)], optimize)[0]
+
+    def integrate_batch(self, frames: list[tuple[FrameData, torch.Tensor | np.ndarray]],
+                        optimize: bool = True) -> list[MappingStep]:
+        """Fuse several frames in order, as :meth:`integrate` on each with ``optimize=False`` and then on the last
+        with ``optimize``, with the map's bookkeeping done once for all of them: one allocation
+        (:meth:`~.voxels.VoxelMap.allocate_counting_batch`), one surface-mark update and one evidence update
+        (:func:`~.evidence.observe_frames`). A realtime mapper fuses the frames tracked since its last round so
+        (on an H100 a frame fused alone cost ~11 ms of a ~240 ms round, 7 of them per round).
+
+        Each frame's keyframe test sees the counts it would have seen in turn; what differs from fusing them one
+        by one: the new voxels are numbered (and their vertices initialised) in one ascending Morton order, each
+        frame's free-space rays also meet the voxels the batch's later frames allocated, and the active mask is
+        updated once. The map's very first frame is fused (and optimised) on its own first; frames of different
+        sizes (allocation strides) one by one. A step's ``time_ms`` is its share of the batch's fusion plus its
+        own iterations.
+        """
+        if not frames:
+            raise ValidationError("frames", "needs at least one (frame, T_world_cam) pair")
+        if len(frames) > FUSE_BATCH_MAX:  # bounded memory: consecutive batches, the last one optimised
+            head = [step for i in range(0, len(frames) - FUSE_BATCH_MAX, FUSE_BATCH_MAX)
+                    for step in self.integrate_batch(frames[i:i + FUSE_BATCH_MAX], optimize=False)]
+            return [*head, *self.integrate_batch(frames[len(head):], optimize)]
+        strides = {self.config.stride_for(frame.width) for frame, _ in frames}
+        if len(frames) > 1 and (not self.keyframes or len(strides) > 1):
+            alone = 1 if len(strides) == 1 else len(frames) - 1  # the first frame, or all but the last
+            return [*(step for i in range(alone) for step in self.integrate_batch([frames[i]], optimize=False)),
+                    *self.integrate_batch(frames[alone:], optimize)]
         t0 = time.perf_counter()
-        T = torch.as_tensor(np.asarray(T_world_cam) if not isinstance(T_world_cam, torch.Tensor)
-                            else T_world_cam, dtype=torch.float64, device=self.device).detach()
-        if frame.n_valid == 0:
-            raise ValidationError("depth_m", f"frame {frame.index} has no valid depth; nothing to fuse")
-        stride = self.config.stride_for(frame.width)
-        points = _backproject(frame, T, stride)
-        n_new, n_obs = self.voxels.allocate_counting(points, self.optimizer)
-        first = not self.keyframes
-        is_kf = (first or self._frames_since_keyframe + 1 >= self.config.keyframe_max_interval
-                 or n_new > self.config.keyframe_ratio * max(n_obs, 1))
-        located = self.voxels.locate_surface_points(points)  # each point's voxel, looked up once
+        (stride,) = strides
+        poses, points = [], []
+        for frame, T_world_cam in frames:
+            T = torch.as_tensor(np.asarray(T_world_cam) if not isinstance(T_world_cam, torch.Tensor)
+                                else T_world_cam, dtype=torch.float64, device=self.device).detach()
+            if frame.n_valid == 0:
+                raise ValidationError("depth_m", f"frame {frame.index} has no valid depth; nothing to fuse")
+            poses.append(T)
+            points.append(_backproject(frame, T, stride))
+        counts = self.voxels.allocate_counting_batch(points, self.optimizer)
+        all_points = points[0] if len(points) == 1 else torch.cat(points)
+        located = self.voxels.locate_surface_points(all_points)  # each point's voxel, looked up once
         self.voxels.add_surface_points(located)  # where the scene was seen: mesh support (mesh.support)
         if self.config.evidence.enabled:
-            observe_frame(self.voxels, frame, T, points, self.config.evidence,
-                          point_weight=float(stride ** 2), point_voxels=located.voxel_idx)
-        current = Keyframe.create(frame, T, fixed=first)
-        if is_kf:
-            self.keyframes.append(current)
-            self._frames_since_keyframe = 0
-        else:
-            self._frames_since_keyframe += 1
-        iters = 0
-        loss = float("nan")
-        if first:
-            iters = self.config.first_frame_iters
-        elif optimize and (is_kf or self._n_integrated % self.config.map_every == 0):
-            iters = self.config.iters
-        if iters:
-            loss = self.optimize(iters, newest=current)
-        if not is_kf:
-            self._forget_pose(current)
-        self._n_integrated += 1
-        return MappingStep(frame.index, is_kf, n_new, n_obs, iters, loss, (time.perf_counter() - t0) * 1e3,
-                           inactive_voxels=self.voxels.n_voxels - self.voxels.n_active)
+            observe_frames(self.voxels, [(frame, T) for (frame, _), T in zip(frames, poses, strict=True)],
+                           all_points, self.config.evidence, point_weight=float(stride ** 2),
+                           point_voxels=located.voxel_idx)
+        fuse_ms = (time.perf_counter() - t0) * 1e3 / len(frames)
+        steps = []
+        for i, ((frame, _), T, (n_new, n_obs)) in enumerate(zip(frames, poses, counts, strict=True)):
+            t1 = time.perf_counter()
+            first = not self.keyframes
+            is_kf = (first or self._frames_since_keyframe + 1 >= self.config.keyframe_max_interval
+                     or n_new > self.config.keyframe_ratio * max(n_obs, 1))
+            current = Keyframe.create(frame, T, fixed=first)
+            if is_kf:
+                self.keyframes.append(current)
+                self._frames_since_keyframe = 0
+            else:
+                self._frames_since_keyframe += 1
+            iters = 0
+            loss = float("nan")
+            if first:
+                iters = self.config.first_frame_iters
+            elif optimize and i == len(frames) - 1 and (is_kf or self._n_integrated % self.config.map_every == 0):
+                iters = self.config.iters
+            if iters:
+                loss = self.optimize(iters, newest=current)
+            if not is_kf:
+                self._forget_pose(current)
+            self._n_integrated += 1
+            steps.append(MappingStep(frame.index, is_kf, n_new, n_obs, iters, loss,
+                                     fuse_ms + (time.perf_counter() - t1) * 1e3,
+                                     inactive_voxels=self.voxels.n_voxels - self.voxels.n_active))
+        return steps
 
     def optimize(self, iters: int, newest: Keyframe | None = None) -> float:
         """Run ``iters`` joint iterations on windows of random keyframes (+ ``newest``); mean loss."""

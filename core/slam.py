@@ -541,18 +541,23 @@ class SlamSystem:
         finally:
             torch.set_num_threads(before)
 
-    def _map(self, rec: FrameRecord, optimize: bool = True) -> None:
-        step = self.mapper.integrate(rec.data, rec.T_tracked, optimize=optimize)
-        rec.data = None
-        rec.mapping = step
-        with self._lock:
-            if step.is_keyframe:
-                kfs = self.mapper.keyframes
-                rec.keyframe = kfs[-1]
-                rec.ref_keyframe, rec.T_ref_frame = None, None
-                if len(kfs) > 1:
-                    self._link_next_keyframe(kfs[-2], kfs[-1])
-            self._mapped += 1
+    def _map(self, recs: list[FrameRecord], optimize: bool = True) -> None:
+        """Fuse the records' frames in order (:meth:`.mapping.Mapper.integrate_batch`: one pass for all; only the
+        last is optimised, when ``optimize``) and link each new keyframe to the records it now follows."""
+        steps = self.mapper.integrate_batch([(rec.data, rec.T_tracked) for rec in recs], optimize=optimize)
+        kfs = self.mapper.keyframes
+        k = len(kfs) - sum(step.is_keyframe for step in steps)  # index of the batch's first new keyframe
+        for rec, step in zip(recs, steps, strict=True):
+            rec.data = None
+            rec.mapping = step
+            with self._lock:
+                if step.is_keyframe:
+                    rec.keyframe = kfs[k]
+                    rec.ref_keyframe, rec.T_ref_frame = None, None
+                    if k > 0:
+                        self._link_next_keyframe(kfs[k - 1], kfs[k])
+                    k += 1
+                self._mapped += 1
 
     def _link_next_keyframe(self, previous: Keyframe, new: Keyframe) -> None:
         """The frames that follow ``previous`` and have no later keyframe yet now have ``new`` (caller holds the
@@ -575,7 +580,7 @@ class SlamSystem:
             self._received += 1
         rec = self._track(frame, t)
         if not rec.lost:
-            self._map(rec)
+            self._map([rec])
             self._publish()
         return rec
 
@@ -680,8 +685,7 @@ class SlamSystem:
                 batch = list(self._to_map)
                 self._to_map.clear()
                 self._mapping_busy = True
-            for i, rec in enumerate(batch):
-                self._map(rec, optimize=i == len(batch) - 1)
+            self._map(batch)  # the frames tracked since the last round, fused together; the newest optimised
             self._publish()
             with self._cond:
                 self._mapping_busy = False

@@ -19,6 +19,7 @@ __all__ = [
     "CORNER_OFFSETS",
     "morton_encode",
     "morton_decode",
+    "unique_codes_tagged",
     "morton_encode_planar",
     "unique_bounded",
     "unique_codes",
@@ -138,6 +139,37 @@ def unique_codes(ijk: torch.Tensor, max_dense_cells: int = 1 << 22) -> torch.Ten
     cells = unique_bounded((rel[:, 0] * ey + rel[:, 1]) * ez + rel[:, 2], ex * ey * ez, max_dense_cells)
     cells_ijk = torch.stack([cells // (ey * ez), (cells // ez) % ey, cells % ez], -1) + lo
     return torch.sort(morton_encode(cells_ijk)).values
+
+
+def unique_codes_tagged(ijk: torch.Tensor, tag: torch.Tensor | None, n_tags: int,
+                        max_dense_cells: int = 1 << 22) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distinct ``(voxel, tag)`` pairs of integer lattice coordinates ``ijk [N, 3]`` (in range; see
+    :func:`morton_encode`) each tagged ``tag [N]`` in ``[0, n_tags)`` (e.g. the frame a point came from):
+    ``(codes [U], tags [U])``, the pairs' Morton codes ascending and a voxel's pairs by ascending tag, so the first
+    pair of each voxel names the first tag that has it. ``tag`` None: :func:`unique_codes` and zero tags.
+
+    As :func:`unique_codes`: the occupied cells of the points' bounding box, now times the tags, are found with
+    :func:`unique_bounded` when there are at most ``max_dense_cells`` of them, else by a sort of the pairs (the
+    reference). Waits for the device once (the box), plus the unique's read-back."""
+    if tag is None:
+        codes = unique_codes(ijk, max_dense_cells)
+        return codes, torch.zeros_like(codes)
+    if tag.shape != ijk.shape[:1]:
+        raise ShapeError("tag", tuple(tag.shape), f"({ijk.shape[0]},)")
+    if ijk.shape[0] == 0:
+        return torch.zeros(0, dtype=torch.int64, device=ijk.device), tag.to(torch.int64)
+    lo = ijk.min(0).values
+    ex, ey, ez = (int(e) for e in (ijk.max(0).values - lo + 1).tolist())
+    if ex * ey * ez * n_tags > max_dense_cells:
+        pairs = torch.unique(torch.stack([morton_encode(ijk), tag.to(torch.int64)], 1), dim=0)  # by code, then tag
+        return pairs[:, 0].contiguous(), pairs[:, 1].contiguous()
+    rel = ijk - lo
+    cells = (rel[:, 0] * ey + rel[:, 1]) * ez + rel[:, 2]
+    keys = unique_bounded(cells * n_tags + tag, ex * ey * ez * n_tags, max_dense_cells)  # by cell, then tag
+    cells, tags = torch.div(keys, n_tags, rounding_mode="floor"), keys % n_tags
+    cells_ijk = torch.stack([cells // (ey * ez), (cells // ez) % ey, cells % ez], -1) + lo
+    codes, order = torch.sort(morton_encode(cells_ijk), stable=True)  # a voxel's pairs keep their tag order
+    return codes, tags[order]
 
 
 def morton_decode(codes: torch.Tensor) -> torch.Tensor:

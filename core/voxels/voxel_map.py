@@ -55,6 +55,7 @@ from .morton import (
     morton_encode,
     unique_bounded,
     unique_codes,
+    unique_codes_tagged,
 )
 
 __all__ = ["MemoryReport", "VoxelMap"]
@@ -465,15 +466,59 @@ class VoxelMap:
         Raises:
             ShapeError / ValidationError naming ``points_world`` (wrong shape, non-finite, out of range).
         """
-        codes, coords = self._unique_point_codes(points_world, "points_world")
-        codes = codes.to(self.device)
-        coords = coords.to(self.device)
-        is_new = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes) < 0
-        new_codes, new_coords = codes[is_new], coords[is_new]
+        return self.allocate_counting_batch([points_world], optimizer)[0]
+
+    def allocate_counting_batch(self, points: list[torch.Tensor],
+                                optimizer: torch.optim.Optimizer | None = None) -> list[tuple[int, int]]:
+        """:meth:`allocate_counting` for each entry of ``points`` in turn, done in one pass (a realtime mapper
+        fusing the frames it caught up on): each entry's ``(n_new, n_observed)`` is what the calls one after
+        another would have returned (a voxel counts as new for the first entry that has it), and the new voxels
+        of all entries are allocated at once, in ascending Morton order (the calls in turn would have numbered
+        them entry by entry: the same voxels, other indices and other initial embeddings). A single entry is
+        exactly :meth:`allocate_counting`.
+
+        Args:
+            points: ``K >= 1`` tensors ``[N_k, 3]`` of float world points in metres.
+            optimizer: as in :meth:`allocate_counting`.
+        """
+        if not points:
+            raise ValidationError("points", "needs at least one [N, 3] tensor")
+        for p in points:
+            self._check_points(p, "points_world")
+        k = len(points)
+        pts = points[0] if k == 1 else torch.cat([p.to(self.device, torch.float64) for p in points])
+        if pts.numel() and not bool(torch.isfinite(pts).all()):
+            raise ValidationError("points_world", "contains non-finite coordinates")
+        ijk = self.points_to_voxel_coords(pts)
+        # the voxel's far corner must stay encodable too
+        check_coord_range(ijk, "points_world", MORTON_MIN_COORD, MORTON_MAX_COORD - 1)
+        if k == 1:
+            tag = None
+        else:
+            tag = torch.cat([torch.full((p.shape[0],), i, dtype=torch.int64, device=self.device)
+                             for i, p in enumerate(points)])
+        codes, entry = unique_codes_tagged(ijk, tag, k)  # each (voxel, entry) once, by voxel then entry
+        known = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes) >= 0
+        first = torch.ones_like(known)
+        first[1:] = codes[1:] != codes[:-1]  # the first entry that has the voxel
+        is_new = first & ~known
+        new_codes = codes[is_new]  # ascending: codes are sorted by voxel
+        if k == 1:
+            n_unique, n_new = [codes.numel()], [new_codes.numel()]
+        else:
+            counts = torch.zeros(2, k, dtype=torch.int64, device=self.device)
+            counts[0].index_add_(0, entry, torch.ones_like(entry))
+            counts[1].index_add_(0, entry, is_new.to(torch.int64))
+            n_unique, n_new = counts.tolist()
+        if new_codes.numel():
+            self._append_voxels(new_codes, morton_decode(new_codes), optimizer)
+        return [(new, total - new) for new, total in zip(n_new, n_unique, strict=True)]
+
+    def _append_voxels(self, new_codes: torch.Tensor, new_coords: torch.Tensor,
+                       optimizer: torch.optim.Optimizer | None) -> None:
+        """Append voxels that are not allocated yet (``new_codes [k]`` ascending, ``new_coords [k, 3]``), with
+        their missing corner vertices (:meth:`allocate_counting`'s second half)."""
         k = int(new_codes.numel())
-        n_observed = int(codes.numel()) - k
-        if k == 0:
-            return 0, n_observed
         # vertices of the new voxels
         corner_codes = morton_encode(new_coords[:, None, :] + CORNER_OFFSETS.to(self.device))  # [k, 8]
         cand = torch.unique(corner_codes)
@@ -506,7 +551,6 @@ class VoxelMap:
         self._invalidate_grids()
         if optimizer is not None:
             self.grow_optimizer_state(optimizer)
-        return k, n_observed
 
     def grow_optimizer_state(self, optimizer: torch.optim.Optimizer) -> int:
         """Point ``optimizer`` at the current ``embeddings`` after growth, keeping old rows' state.

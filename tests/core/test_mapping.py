@@ -8,7 +8,7 @@ import trimesh
 from voxfusion.core.checkpoint import load_checkpoint, save_checkpoint
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.datasets.transforms import TransformedCapture
-from voxfusion.core.errors import CaptureError
+from voxfusion.core.errors import CaptureError, ValidationError
 from voxfusion.core.eval.mesh import MeshEvalConfig, compute_mesh_metrics, views_from_frames
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.mapping import Mapper
@@ -354,3 +354,66 @@ def test_compiled_mapping_step_matches_the_eager_fixed_shape_step():
     for a, b in zip(comp.keyframes, eager.keyframes, strict=True):
         torch.testing.assert_close(a.delta, b.delta, rtol=1e-3, atol=1e-9)
     assert float(comp.keyframes[2].delta.detach().abs().max()) > 0  # ... and it moved
+
+
+def _by_code(vm, values: torch.Tensor) -> dict[int, object]:
+    """Per-voxel values keyed by the voxel's Morton code (maps that numbered their voxels differently)."""
+    return {int(c): v for c, v in zip(vm.voxel_codes.tolist(), values.tolist(), strict=True)}
+
+
+def test_fusing_frames_in_one_batch_is_fusing_them_in_turn():
+    """A realtime mapper fuses the frames it caught up on in one pass (Mapper.integrate_batch): the same keyframe
+    decisions and counts, voxels, surface marks and hit evidence as fusing them one by one; each frame's rays add
+    free-space evidence to the batch's later voxels too (never less than in turn); only the last frame is optimised."""
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=1", "mapping.iters=1",
+                                           "mapping.keyframe_max_interval=3", "mapping.keyframe_ratio=0.05"])
+    cap = SyntheticCapture(SyntheticConfig(n_frames=12, width=48, height=36))
+    frames = [(frame_to_device(f, "cpu"), f.T_world_cam) for f in cap.frames()]
+    turn = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu")
+    batch = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu")
+    one_by_one = [turn.integrate(f, T, optimize=False) for f, T in frames[:-1]] + [turn.integrate(*frames[-1])]
+    together = batch.integrate_batch(frames[:1])
+    before = {int(c) for c in batch.voxels.voxel_codes.tolist()}
+    together += batch.integrate_batch(frames[1:3], optimize=False)
+    together += batch.integrate_batch(frames[3:])
+    for a, b in zip(one_by_one, together, strict=True):
+        assert (a.is_keyframe, a.new_voxels, a.observed_voxels, a.iterations) == \
+               (b.is_keyframe, b.new_voxels, b.observed_voxels, b.iterations)
+    assert [s.iterations > 0 for s in together] == [True] + [False] * 10 + [True]
+    assert any(s.is_keyframe for s in together[3:-1]) and any(s.new_voxels for s in together[3:])
+    assert len(turn.keyframes) == len(batch.keyframes)
+    a, b = turn.voxels, batch.voxels
+    assert sorted(a.voxel_codes.tolist()) == sorted(b.voxel_codes.tolist())
+    assert not torch.equal(a.voxel_codes, b.voxel_codes)  # numbered in one Morton order, not frame by frame
+    assert _by_code(a, a.voxel_hits) == _by_code(b, b.voxel_hits)
+    assert _by_code(a, a.voxel_surface.to(torch.int64)) == _by_code(b, b.voxel_surface.to(torch.int64))
+    free_a, free_b = _by_code(a, a.voxel_free), _by_code(b, b.voxel_free)
+    assert all(free_b[c] >= free_a[c] for c in free_a)
+    assert all(free_b[c] == free_a[c] for c in before)  # voxels that existed before the batches: the same rays
+    assert sum(free_b.values()) > sum(free_a.values())
+
+
+def test_a_long_batch_is_fused_in_bounded_passes_and_frames_of_other_sizes_alone(monkeypatch):
+    from voxfusion.core import mapping
+
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=1", "mapping.iters=1"])
+    cap = SyntheticCapture(SyntheticConfig(n_frames=8, width=48, height=36))
+    frames = [(frame_to_device(f, "cpu"), f.T_world_cam) for f in cap.frames()]
+    m = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu")
+    passes = []
+    real = mapping.Mapper.integrate_batch
+
+    def spy(self, fs, optimize=True):
+        passes.append((len(fs), optimize))
+        return real(self, fs, optimize)
+
+    monkeypatch.setattr(mapping, "FUSE_BATCH_MAX", 3)
+    monkeypatch.setattr(mapping.Mapper, "integrate_batch", spy)
+    steps = m.integrate_batch(frames)
+    assert [s.frame_index for s in steps] == [f.index for f, _ in frames]
+    assert [s.iterations > 0 for s in steps] == [True] + [False] * 6 + [True]
+    # the first frame alone, then passes of at most 3, only the last optimised
+    assert passes[0] == (8, True) and (1, False) in passes and all(n <= 3 for n, _ in passes[1:] if n != 7)
+    assert [opt for n, opt in passes[1:] if n <= 3] == [False] * (len(passes) - 2) + [True]
+    with pytest.raises(ValidationError):
+        m.integrate_batch([])

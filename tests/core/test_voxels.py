@@ -475,3 +475,35 @@ def test_pack_flags_matches_numpy_packbits_little_endian():
         assert np.array_equal(_pack_flags(flags).numpy(), want), (n, p)
     assert _pack_flags(torch.ones(16, dtype=torch.bool)).tolist() == [255, 255]
     assert _pack_flags(torch.arange(16) == 9).tolist() == [0, 2]  # flag 9: byte 1, bit 1
+
+
+@pytest.mark.parametrize("max_dense", [1 << 22, 64])  # the dense box, and the sort of pairs it falls back to
+def test_tagged_unique_codes_are_the_distinct_pairs_by_code_then_tag(max_dense):
+    from voxfusion.core.voxels.morton import morton_encode, unique_codes, unique_codes_tagged
+
+    g = torch.Generator().manual_seed(2)
+    ijk = torch.randint(-6, 6, (500, 3), generator=g)
+    tag = torch.randint(0, 4, (500,), generator=g)
+    codes, tags = unique_codes_tagged(ijk, tag, 4, max_dense)
+    want = torch.unique(torch.stack([morton_encode(ijk), tag], 1), dim=0)  # sorted by code, then tag
+    assert torch.equal(codes, want[:, 0]) and torch.equal(tags, want[:, 1])
+    plain, zeros = unique_codes_tagged(ijk, None, 1, max_dense)
+    assert torch.equal(plain, unique_codes(ijk)) and not zeros.any()
+
+
+def test_allocating_several_point_sets_at_once_counts_as_allocating_them_in_turn():
+    g = torch.Generator().manual_seed(3)
+    sets = [(torch.rand(300, 3, generator=g, dtype=torch.float64) - 0.5) * s + c
+            for s, c in ((1.0, 0.0), (1.0, 0.3), (0.5, 2.0))]
+    sets.append(sets[0][100:200])  # seen before in the same batch
+    turn, once = VoxelMap(0.1, seed=0), VoxelMap(0.1, seed=0)
+    turn.allocate(sets[0][:50])
+    once.allocate(sets[0][:50])
+    counts = [turn.allocate_counting(p) for p in sets]
+    assert once.allocate_counting_batch(sets) == counts
+    assert counts[3][0] == 0 and counts[2][1] == 0 and counts[1][0] > 0  # nothing new, nothing seen, some of each
+    assert sorted(turn.voxel_codes.tolist()) == sorted(once.voxel_codes.tolist())
+    assert torch.equal(once.voxel_codes[50:].sort().values, once.voxel_codes[50:])  # new ones in Morton order
+    assert once.allocate_counting_batch(sets) == [(0, c[0] + c[1]) for c in counts]  # idempotent
+    with pytest.raises(ValidationError):
+        once.allocate_counting_batch([sets[0], torch.full((2, 3), float("nan"), dtype=torch.float64)])
