@@ -23,7 +23,11 @@ first 10 frames with the ``cpu`` sizes; then:
   frame 10's pose as a GPU renders it (one call of 65536 rays, the GPU's event budget), with the walk of
   data-dependent shapes and with the fixed-shape walk (:func:`~voxfusion.core.render.render_rays_fixed`, a GPU's
   default); "per iteration" is per image there. Each row also reads one small tensor back with ``.tolist()`` (the
-  chunk sizes; the sample count with the walk's doubt flag), which runs no operator on a CPU and is not counted.
+  chunk sizes; the sample count with the walk's doubt flag), which runs no operator on a CPU and is not counted;
+* ``fuse/7 frames in turn`` and ``... in one pass``: a realtime mapping round's fusion of the 7 frames tracked
+  since the last round (what an H100 session fed at 30 Hz fused per round), with ``Mapper.integrate`` per frame and
+  with ``Mapper.integrate_batch`` (one allocation, surface-mark and evidence update); "per iteration" is per round
+  (each call fuses into its own copy of the same map, made beforehand).
 
 Where the engine computes one thing in two forms, one for a CPU and one with fewer operators for a GPU (the trilinear
 weights, ``core/field.py``), the GPU's form is counted (``--cpu-forms``: the CPU's). The band rows count the
@@ -194,6 +198,25 @@ def main(argv: list[str] | None = None) -> int:
                           "sync_ops_per_iteration": c["sync_ops"]}
     finally:
         raycast._event_budget = budget
+
+    # a realtime round's fusion: the 7 frames tracked since the last round (an H100 session fed at 30 Hz fused ~7
+    # per round), fused one by one (integrate, optimize=False) and in one pass (integrate_batch)
+    import copy
+
+    fuse_cfg = load_preset("cpu-small", ["device=cpu", "mapping.first_frame_iters=1"])
+    fuse_cap = SyntheticCapture(SyntheticConfig(n_frames=13))
+    fuse_frames = [(frame_to_device(f, "cpu"), f.T_world_cam) for f in fuse_cap.frames()]
+    base = make_mapper(fuse_cfg)
+    for f, T in fuse_frames[:6]:
+        base.integrate(f, T, optimize=False)
+    fusions = {"fuse/7 frames in turn": lambda m: [m.integrate(f, T, optimize=False) for f, T in fuse_frames[6:]]}
+    if hasattr(base, "integrate_batch"):
+        fusions["fuse/7 frames in one pass"] = lambda m: m.integrate_batch(fuse_frames[6:], optimize=False)
+    for name, fuse in fusions.items():
+        maps = [copy.deepcopy(base) for _ in range(args.repeats + 1)]  # one per call (with the warm-up), made here
+        c = count_ops(lambda fuse=fuse, maps=maps: fuse(maps.pop()), args.repeats)
+        rows[name] = {"aten_ops_per_iteration": c["aten_ops"], "host_syncs_per_iteration": c["host_syncs"],
+                      "sync_ops_per_iteration": c["sync_ops"]}
 
     print(f"{'scenario':<38}{'aten ops / it':>15}{'host syncs / it':>17}{'outside Adam':>14}")
     for name, r in rows.items():
