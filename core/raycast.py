@@ -294,6 +294,8 @@ def _first_planes(w: _Walk, block: int, v: float,
     ``rounds`` is None (``unsettled`` is then None), else exactly ``rounds`` corrections and ``unsettled``, a bool
     scalar on the device, says whether the last one still moved a plane (the caller must not trust ``q`` then).
     """
+    if rounds is not None and rounds < 1:
+        raise ValidationError("rounds", f"must be >= 1 (or None), got {rounds}")
     nz = w.d != 0
     up = w.step > 0
     cell = torch.div(w.cell0, block, rounding_mode="floor") if block > 1 else w.cell0
@@ -521,6 +523,11 @@ def intersect_voxels(voxel_map: VoxelMap, origins: torch.Tensor, dirs: torch.Ten
 
 
 # ---------------------------------------------------------------- fixed shapes
+_FIXED_WALK_MAX_PLANES = 128
+"""Longest map box (in crossings per axis, :func:`fixed_walk_planes`) the fixed-shape walk takes on: every ray walks
+that many crossings per axis whatever its length, where the data-dependent walk covers each ray's own length and
+skips empty space in coarse blocks; beyond it (a map over ~125 voxels long: 25 m at 0.2 m voxels, 6 m at 5 cm) the
+fixed walk's work and memory (~3 * 128 crossings a ray) outweigh the read-backs it saves."""
 _FIXED_PLANE_ROUNDS = 2
 """Corrections of the first-plane estimate in the fixed-shape walk: the estimate is off by at most one plane, so the
 first settles it and the second confirms (it moving a plane makes the result doubtful, see :func:`_first_planes`)."""
@@ -583,7 +590,8 @@ def intersect_voxels_fixed(voxel_map: VoxelMap, origins: torch.Tensor, dirs: tor
         ``(hits, doubt)``: hits in ``origins``' dtype, identical to :func:`intersect_voxels`' apart from the padding
         columns, and ``doubt``, a bool scalar on the device that is True where the fixed walk's assumptions failed
         (read it with whatever the caller reads next; when True use :func:`intersect_voxels`). None where the map
-        is empty or has no dense index grid (:func:`intersect_voxels` then).
+        is empty, has no dense index grid or is longer than :data:`_FIXED_WALK_MAX_PLANES` crossings
+        (:func:`intersect_voxels` then).
     """
     _check_rays(origins, dirs)
     grid = voxel_map.index_grid() if voxel_map.voxel_bounds is not None else None
@@ -600,6 +608,8 @@ def intersect_voxels_fixed(voxel_map: VoxelMap, origins: torch.Tensor, dirs: tor
     sd = torch.where(d != 0, d, torch.ones_like(d))
     walk = _Walk(o, d, sd, torch.sign(d).to(torch.int64), cell0, t0, t1, t0, t1)
     n_planes = fixed_walk_planes(grid)
+    if n_planes > _FIXED_WALK_MAX_PLANES:
+        return None
     columns = min(max_hits, 3 * n_planes + 1)
     rows = max(1, _event_budget(o.device) // (3 * n_planes + 1))
     parts = [_walk_fixed(grid, v, walk.take(slice(a, a + rows)), ok[a:a + rows], n_planes, columns)

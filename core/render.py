@@ -332,7 +332,7 @@ def render_rays_fixed(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins
     (:func:`~.raycast.intersect_voxels_fixed`): two read-backs in all (the sample count together with the walk's
     doubt flag, then the samples inside the map) where :func:`render_rays` has ~10, for a GPU, where each one
     waits for the device. The same result (the walk's padding adds nothing); None where the fixed walk does not
-    apply (no dense index grid) or doubts its result: call :func:`render_rays` then."""
+    apply (no dense index grid, a map too long for it) or doubts its result: call :func:`render_rays` then."""
     origins, dirs, dn = _rays_on_map(voxel_map, origins, dirs)
     got = intersect_voxels_fixed(voxel_map, origins, dirs, config.max_distance_m,
                                  config.max_hits_for(voxel_map.voxel_size_m))

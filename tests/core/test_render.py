@@ -341,6 +341,21 @@ def test_fixed_walk_splits_its_rows_by_the_event_budget(monkeypatch):
     assert not bool(doubt)
 
 
+def test_a_map_too_long_for_the_fixed_walk_renders_through_the_fast_walk(monkeypatch):
+    """Every ray walks the whole box's crossings in the fixed walk: past a box length it leaves the image to the
+    data-dependent walk (which skips empty space), with the same image."""
+    cfg = RenderConfig(step_ratio=0.05, max_distance_m=5.0)
+    vm = _band_map(sphere_sdf, 0.2, 1.0, 0.35)
+    o, d = camera_rays(K_TEST, torch.eye(4), width=32, height=24, dtype=torch.float32)
+    planes = raycast_module.fixed_walk_planes(vm.index_grid())
+    assert intersect_voxels_fixed(vm, o, d, 5.0, 100) is not None
+    monkeypatch.setattr(raycast_module, "_FIXED_WALK_MAX_PLANES", planes - 1)
+    assert intersect_voxels_fixed(vm, o, d, 5.0, 100) is None and render_rays_fixed(vm, sphere_sdf, o, d, cfg) is None
+    got = render_depth_image(vm, sphere_sdf, K_TEST, torch.eye(4), 32, 24, cfg, fixed_walk=True)
+    want = render_depth_image(vm, sphere_sdf, K_TEST, torch.eye(4), 32, 24, cfg, fixed_walk=False)
+    assert got.valid.any() and all(torch.equal(a, b) for a, b in zip(got, want, strict=True))
+
+
 def test_fixed_walk_doubts_walks_it_cannot_vouch_for_and_the_image_falls_back():
     """Rays clipped to a box larger than the dense grid (the walk leaves it), or a first-plane search cut short:
     the walk says so on the device, and the image renders through the fast path instead, unchanged."""
