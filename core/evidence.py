@@ -57,8 +57,8 @@ from .errors import ConfigError, ShapeError, ValidationError
 from .framedata import FrameData
 from .voxels import VoxelMap
 
-__all__ = ["EvidenceConfig", "EvidenceUpdate", "free_space_voxels", "evidence_active", "observe_frame",
-           "observe_frames"]
+__all__ = ["EvidenceConfig", "EvidenceUpdate", "free_space_voxels", "free_space_voxels_many", "evidence_active",
+           "observe_frame", "observe_frames"]
 
 _SAMPLE_BUDGET = 1 << 20
 """Ray samples handled at once by :func:`free_space_voxels` (bounds its memory, ~100 MB peak)."""
@@ -151,26 +151,45 @@ def free_space_voxels(voxel_map: VoxelMap, depth_m: torch.Tensor, K: torch.Tenso
     Returns:
         ``[F]`` int64 voxel indices (repeats = several rays crossed the voxel).
     """
-    if depth_m.dim() != 2:
-        raise ShapeError("depth_m", tuple(depth_m.shape), "[H, W]")
+    return free_space_voxels_many(voxel_map, [(depth_m, K, T_world_cam)], ray_stride_px, margin_m, step_m)
+
+
+@torch.no_grad()
+def free_space_voxels_many(voxel_map: VoxelMap, views: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
+                           ray_stride_px: int, margin_m: float, step_m: float) -> torch.Tensor:
+    """:func:`free_space_voxels` of several posed depth images ``(depth_m, K, T_world_cam)`` at one pixel stride,
+    their rays sampled together (a realtime round's frames): each image's entries, in another order.
+
+    Returns:
+        ``[F]`` int64 voxel indices (repeats = several rays crossed the voxel).
+    """
     if not step_m > 0:
         raise ValidationError("step_m", f"must be > 0, got {step_m}")
+    for depth_m, _, _ in views:
+        if depth_m.dim() != 2:
+            raise ShapeError("depth_m", tuple(depth_m.shape), "[H, W]")
     dev = voxel_map.device
     empty = torch.empty(0, dtype=torch.int64, device=dev)
     if voxel_map.n_voxels == 0:
         return empty
     s = int(ray_stride_px)
-    d = depth_m[::s, ::s].to(dev)
-    rows, cols = torch.nonzero(d > margin_m, as_tuple=True)
-    if rows.numel() == 0:
+    ends, ray_dirs, origins = [], [], []
+    for depth_m, K, T_world_cam in views:
+        d = depth_m[::s, ::s].to(dev)
+        rows, cols = torch.nonzero(d > margin_m, as_tuple=True)
+        if rows.numel() == 0:
+            continue
+        ends.append(d[rows, cols].to(torch.float64) - margin_m)  # camera depth of each ray's last free point
+        Kd = K.to(dev, torch.float64)
+        T = T_world_cam.detach().to(dev, torch.float64)
+        x = (cols.to(torch.float64) * s - Kd[0, 2]) / Kd[0, 0]
+        y = (rows.to(torch.float64) * s - Kd[1, 2]) / Kd[1, 1]
+        ray_dirs.append(torch.stack([x, y, torch.ones_like(x)], -1) @ T[:3, :3].T)  # [R, 3], camera z component 1
+        origins.append(T[:3, 3].float().expand(rows.numel(), 3))
+    if not ends:
         return empty
-    t_end = d[rows, cols].to(torch.float64) - margin_m  # camera depth of each ray's last free point
-    Kd = K.to(dev, torch.float64)
-    T = T_world_cam.detach().to(dev, torch.float64)
-    x = (cols.to(torch.float64) * s - Kd[0, 2]) / Kd[0, 0]
-    y = (rows.to(torch.float64) * s - Kd[1, 2]) / Kd[1, 1]
-    dirs = torch.stack([x, y, torch.ones_like(x)], -1) @ T[:3, :3].T  # [R, 3], camera z component 1
-    origin = T[:3, 3]
+    one = len(ends) == 1
+    t_end, dirs = (ends[0], ray_dirs[0]) if one else (torch.cat(ends), torch.cat(ray_dirs))
     dt = step_m / dirs.norm(dim=-1)  # camera-depth step of each ray
     n_steps = torch.ceil(t_end / dt).to(torch.int64)  # samples 0..n_steps, the last one at t_end
     order = torch.argsort(n_steps)  # chunk rays of similar length together
@@ -178,7 +197,10 @@ def free_space_voxels(voxel_map: VoxelMap, depth_m: torch.Tensor, K: torch.Tenso
     # float32 from here: a sample that lands in the neighbouring voxel only shifts one count. Per axis, so
     # every elementwise operation runs over a contiguous [r, width] block (a [r, width, 3] layout costs
     # ~2.5x as much on a CPU: broadcasts and int64 conversions over an inner dimension of 3)
-    origin_xyz = origin.float().tolist()
+    if one:  # one camera centre: a scalar per axis
+        origin_xyz = origins[0][0].tolist()
+    else:
+        origin_rays = torch.cat(origins).T.contiguous()  # [3, R]
     dirs_xyz = dirs.float().T.contiguous()  # [3, R]
     dt, t_end = dt.float(), t_end.float()
     inv_v = 1.0 / voxel_map.voxel_size_m
@@ -193,7 +215,8 @@ def free_space_voxels(voxel_map: VoxelMap, depth_m: torch.Tensor, K: torch.Tenso
         width = steps_sorted[stop - 1] + 1
         k = torch.arange(width, device=dev, dtype=torch.float32)
         t = torch.minimum(k[None, :] * dt[ids, None], t_end[ids, None])  # [r, width], padded with t_end
-        cell_xyz = (torch.floor((dirs_xyz[a, ids, None] * t + origin_xyz[a]) * inv_v).to(torch.int64)
+        centre = origin_xyz if one else [origin_rays[a, ids, None] for a in range(3)]
+        cell_xyz = (torch.floor((dirs_xyz[a, ids, None] * t + centre[a]) * inv_v).to(torch.int64)
                     for a in range(3))
         idx = voxel_map.lookup_allocated_xyz(*cell_xyz)  # [r, width], -1 where nothing is allocated
         first = torch.ones_like(idx, dtype=torch.bool)
@@ -257,15 +280,15 @@ def observe_frames(voxel_map: VoxelMap, frames: list[tuple[FrameData, torch.Tens
     elif point_voxels.shape != points_world.shape[:1]:
         raise ShapeError("point_voxels", tuple(point_voxels.shape), f"[{points_world.shape[0]}]")
     hit_idx = point_voxels[point_voxels >= 0]
-    free_by_weight: dict[float, list[torch.Tensor]] = {}  # a frame's rays stand for stride**2 pixels each
+    by_stride: dict[int, list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]] = {}  # the frames' ray strides
     for frame, T_world_cam in frames:
-        stride = config.ray_stride_px(frame.height, frame.width)
-        free_by_weight.setdefault(float(stride ** 2), []).append(free_space_voxels(
-            voxel_map, frame.depth_m, frame.K, T_world_cam, stride, config.margin_m,
-            config.sample_step_ratio * voxel_map.voxel_size_m))
+        by_stride.setdefault(config.ray_stride_px(frame.height, frame.width), []).append(
+            (frame.depth_m, frame.K, T_world_cam))
     free_px = 0.0
-    for i, (free_weight, parts) in enumerate(free_by_weight.items()):
-        free_idx = parts[0] if len(parts) == 1 else torch.cat(parts)
+    for i, (stride, views) in enumerate(by_stride.items()):  # a ray stands for stride**2 pixels
+        free_idx = free_space_voxels_many(voxel_map, views, stride, config.margin_m,
+                                          config.sample_step_ratio * voxel_map.voxel_size_m)
+        free_weight = float(stride ** 2)
         voxel_map.add_evidence(hit_idx if i == 0 else hit_idx[:0], free_idx, point_weight, free_weight)
         free_px += float(free_idx.numel()) * free_weight
     changed = voxel_map.set_active(evidence_active(voxel_map.voxel_hits, voxel_map.voxel_free, config,

@@ -249,6 +249,26 @@ def test_free_space_sampling_matches_exact_ray_voxel_traversal(step_ratio, min_r
     assert n_sampled.sum() >= min_recall * n_exact.sum() and n_exact.sum() > 1000
 
 
+def test_free_space_of_several_views_sampled_together_is_each_views_own():
+    """A realtime round's frames cast their free-space rays together: the same entries as each frame alone (in
+    another order), views without a valid pixel adding none."""
+    from voxfusion.core.evidence import free_space_voxels_many
+
+    cap = SyntheticCapture(SyntheticConfig(n_frames=6, width=64, height=48, seed=2))
+    views = []
+    vm = VoxelMap(0.2, embed_dim=4, seed=0)
+    for i in (0, 3, 5):
+        data = frame_to_device(cap[i], "cpu")
+        T = torch.as_tensor(cap[i].T_world_cam)
+        vm.allocate(_backproject(data, T, 1))
+        views.append((data.depth_m, data.K, T))
+    views.append((torch.zeros_like(views[0][0]), views[0][1], views[0][2]))  # no valid depth
+    each = torch.cat([free_space_voxels(vm, *view, 2, 0.1, 0.1) for view in views])
+    together = free_space_voxels_many(vm, views, 2, 0.1, 0.1)
+    assert each.numel() > 100 and torch.equal(together.sort().values, each.sort().values)
+    assert free_space_voxels_many(vm, views[-1:], 2, 0.1, 0.1).numel() == 0
+
+
 def test_evidence_config_errors():
     for kwargs, field in [({"free_rays": 0}, "free_rays"), ({"margin_m": -1.0}, "margin_m"),
                           ({"min_hit_ratio": 1.0}, "min_hit_ratio"), ({"sample_step_ratio": 0.0},
