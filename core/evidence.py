@@ -188,8 +188,7 @@ def free_space_voxels_many(voxel_map: VoxelMap, views: list[tuple[torch.Tensor, 
         origins.append(T[:3, 3].float().expand(rows.numel(), 3))
     if not ends:
         return empty
-    one = len(ends) == 1
-    t_end, dirs = (ends[0], ray_dirs[0]) if one else (torch.cat(ends), torch.cat(ray_dirs))
+    t_end, dirs, origin_rays = torch.cat(ends), torch.cat(ray_dirs), torch.cat(origins).T.contiguous()  # [3, R]
     dt = step_m / dirs.norm(dim=-1)  # camera-depth step of each ray
     n_steps = torch.ceil(t_end / dt).to(torch.int64)  # samples 0..n_steps, the last one at t_end
     order = torch.argsort(n_steps)  # chunk rays of similar length together
@@ -197,10 +196,6 @@ def free_space_voxels_many(voxel_map: VoxelMap, views: list[tuple[torch.Tensor, 
     # float32 from here: a sample that lands in the neighbouring voxel only shifts one count. Per axis, so
     # every elementwise operation runs over a contiguous [r, width] block (a [r, width, 3] layout costs
     # ~2.5x as much on a CPU: broadcasts and int64 conversions over an inner dimension of 3)
-    if one:  # one camera centre: a scalar per axis
-        origin_xyz = origins[0][0].tolist()
-    else:
-        origin_rays = torch.cat(origins).T.contiguous()  # [3, R]
     dirs_xyz = dirs.float().T.contiguous()  # [3, R]
     dt, t_end = dt.float(), t_end.float()
     inv_v = 1.0 / voxel_map.voxel_size_m
@@ -215,8 +210,7 @@ def free_space_voxels_many(voxel_map: VoxelMap, views: list[tuple[torch.Tensor, 
         width = steps_sorted[stop - 1] + 1
         k = torch.arange(width, device=dev, dtype=torch.float32)
         t = torch.minimum(k[None, :] * dt[ids, None], t_end[ids, None])  # [r, width], padded with t_end
-        centre = origin_xyz if one else [origin_rays[a, ids, None] for a in range(3)]
-        cell_xyz = (torch.floor((dirs_xyz[a, ids, None] * t + centre[a]) * inv_v).to(torch.int64)
+        cell_xyz = (torch.floor((dirs_xyz[a, ids, None] * t + origin_rays[a, ids, None]) * inv_v).to(torch.int64)
                     for a in range(3))
         idx = voxel_map.lookup_allocated_xyz(*cell_xyz)  # [r, width], -1 where nothing is allocated
         first = torch.ones_like(idx, dtype=torch.bool)

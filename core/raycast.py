@@ -537,8 +537,6 @@ def fixed_walk_planes(grid: VoxelIndexGrid) -> int:
     """Crossings per axis that cover any ray clipped to the occupied box of ``grid`` (a level-0 grid whose box is
     the map's :attr:`~.voxels.VoxelMap.voxel_bounds`): a ray crosses at most ``box + 1`` planes of an axis inside
     a box ``box`` cells long, the walk adds the first crossing after ``t1``, and one more absorbs rounding."""
-    if grid.box_shape is None:
-        raise ValidationError("grid", "has no box_shape (built by build_index_grid?)")
     return max(grid.box_shape) + 3
 
 
@@ -595,7 +593,7 @@ def intersect_voxels_fixed(voxel_map: VoxelMap, origins: torch.Tensor, dirs: tor
     """
     _check_rays(origins, dirs)
     grid = voxel_map.index_grid() if voxel_map.voxel_bounds is not None else None
-    if grid is None or origins.shape[0] == 0:
+    if grid is None or origins.shape[0] == 0 or fixed_walk_planes(grid) > _FIXED_WALK_MAX_PLANES:
         return None
     out_dtype = origins.dtype if origins.is_floating_point() else torch.float32
     o, d, t0, t1, ok = _clip_rays(voxel_map, origins, dirs, max_distance_m, None)
@@ -608,8 +606,6 @@ def intersect_voxels_fixed(voxel_map: VoxelMap, origins: torch.Tensor, dirs: tor
     sd = torch.where(d != 0, d, torch.ones_like(d))
     walk = _Walk(o, d, sd, torch.sign(d).to(torch.int64), cell0, t0, t1, t0, t1)
     n_planes = fixed_walk_planes(grid)
-    if n_planes > _FIXED_WALK_MAX_PLANES:
-        return None
     columns = min(max_hits, 3 * n_planes + 1)
     rows = max(1, _event_budget(o.device) // (3 * n_planes + 1))
     parts = [_walk_fixed(grid, v, walk.take(slice(a, a + rows)), ok[a:a + rows], n_planes, columns)

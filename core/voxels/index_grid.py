@@ -49,12 +49,12 @@ class VoxelIndexGrid:
     level: int
     table: torch.Tensor
     n_occupied: int
+    box_shape: tuple[int, int, int]
+    """Cells per axis of the occupied box alone (the cells' bounding box, without the border and the alignment),
+    as Python ints."""
     border: int = 0
     """At least this many empty cells on every side of the occupied box (more where the box is aligned; >= 1:
     :meth:`lookup` clamps onto them)."""
-    box_shape: tuple[int, int, int] | None = None
-    """Cells per axis of the occupied box alone (the cells' bounding box, without the border and the alignment),
-    as Python ints; None where the builder did not say."""
 
     @property
     def strides(self) -> tuple[int, int, int]:

@@ -341,16 +341,14 @@ class VoxelMap:
             raise ValidationError(field, f"must be a floating tensor (metres), got {points_world.dtype}")
         return points_world
 
-    def _unique_point_codes(self, points_world: torch.Tensor,
-                            field: str) -> tuple[torch.Tensor, torch.Tensor]:
-        self._check_points(points_world, field)
+    def _point_cells(self, points_world: torch.Tensor, field: str) -> torch.Tensor:
+        """``[N, 3]`` int64 voxel coordinates of world points that must be allocatable: finite, and with the
+        voxel's far corner still Morton-encodable (``ValidationError(field)`` otherwise)."""
         if points_world.numel() and not bool(torch.isfinite(points_world).all()):
             raise ValidationError(field, "contains non-finite coordinates")
         ijk = self.points_to_voxel_coords(points_world)
-        # the voxel's far corner must stay encodable too
         check_coord_range(ijk, field, MORTON_MIN_COORD, MORTON_MAX_COORD - 1)
-        codes = unique_codes(ijk)  # sorted ascending
-        return codes, morton_decode(codes)
+        return ijk
 
     def lookup_voxels(self, points_world: torch.Tensor) -> torch.Tensor:
         """Voxel index of each world point: ``[N, 3]`` metres -> ``[N]`` int64, -1 outside allocated voxels.
@@ -437,7 +435,8 @@ class VoxelMap:
         ``n_new`` (paper ``N_c``) would be allocated by :meth:`allocate`; ``n_observed`` (paper ``N_o``)
         already exist.
         """
-        codes, _ = self._unique_point_codes(points_world, "points_world")
+        self._check_points(points_world, "points_world")
+        codes = unique_codes(self._point_cells(points_world, "points_world"))
         found = find_sorted(self._sorted_voxel_codes, self._voxel_perm, codes) >= 0
         n_obs = int(found.sum())
         return int(codes.numel()) - n_obs, n_obs
@@ -487,11 +486,7 @@ class VoxelMap:
             self._check_points(p, "points_world")
         k = len(points)
         pts = points[0] if k == 1 else torch.cat([p.to(self.device, torch.float64) for p in points])
-        if pts.numel() and not bool(torch.isfinite(pts).all()):
-            raise ValidationError("points_world", "contains non-finite coordinates")
-        ijk = self.points_to_voxel_coords(pts)
-        # the voxel's far corner must stay encodable too
-        check_coord_range(ijk, "points_world", MORTON_MIN_COORD, MORTON_MAX_COORD - 1)
+        ijk = self._point_cells(pts, "points_world")
         if k == 1:
             tag = None
         else:
