@@ -21,7 +21,6 @@ they were tracked) rigidly.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import logging
 import threading
@@ -328,7 +327,7 @@ class SlamSystem:
             return
         stream = self._streams.get("mapping")
         voxels = m.voxels.snapshot()
-        decoder = copy.deepcopy(m.decoder).requires_grad_(False)
+        decoder = m.decoder.frozen_copy()
         publish_keyframe_poses(m.keyframes)  # other threads read keyframe poses from these copies only
         if stream is not None:
             stream.synchronize()

@@ -256,9 +256,28 @@ def test_compiled_decoder_matches_eager_and_serves_copies():
     got = _outputs_and_grads(fast, feats)
     for g, w in zip(got, want, strict=True):
         torch.testing.assert_close(g, w, atol=1e-5, rtol=1e-5)
-    snapshot = copy.deepcopy(fast).requires_grad_(False)  # the engine's map snapshots copy the decoder
+    for snapshot in (fast.frozen_copy(), copy.deepcopy(fast)):  # the engine's map snapshots copy the decoder
+        with torch.no_grad():
+            torch.testing.assert_close(snapshot(feats[:77])[0], ref(feats[:77])[0], atol=1e-5, rtol=1e-5)
+
+
+def test_frozen_copy_is_an_independent_decoder_without_gradient():
+    import copy
+
+    decoder = SDFDecoder(FieldConfig(embed_dim=16, sdf_hidden=32, color_hidden=32))
+    frozen = decoder.frozen_copy()
+    reference = copy.deepcopy(decoder).requires_grad_(False)  # what it stands for
+    feats = torch.randn(50, 16, generator=torch.Generator().manual_seed(5))
     with torch.no_grad():
-        torch.testing.assert_close(snapshot(feats[:77])[0], ref(feats[:77])[0], atol=1e-5, rtol=1e-5)
+        for got, want in zip(frozen(feats), reference(feats), strict=True):
+            assert torch.equal(got, want)
+    assert [name for name, _ in frozen.named_parameters()] == [name for name, _ in decoder.named_parameters()]
+    assert all(not p.requires_grad for p in frozen.parameters())
+    assert all(p.requires_grad for p in decoder.parameters())  # the original keeps training
+    with torch.no_grad():  # training the original later does not reach the copy
+        next(decoder.parameters()).add_(1.0)
+        assert torch.equal(frozen(feats)[0], reference(feats)[0])
+    assert frozen.config is decoder.config and type(frozen.sdf_net) is type(decoder.sdf_net)
 
 
 def test_compile_failure_leaves_one_warning_and_the_eager_decoder(monkeypatch, caplog):
