@@ -162,12 +162,15 @@ class Keyframe:
 
     Threads: ``delta`` is updated in place by the mapping thread's optimiser; other threads read
     :meth:`published_pose`, a copy the mapping thread swaps in whole with each published map
-    (:func:`publish_keyframe_poses`), never the parameter itself.
+    (:func:`publish_keyframe_poses`), and ``T_base_host``, never the device tensors themselves (on a GPU a read
+    from another thread's stream could see them before the mapping stream wrote them, and would wait for it).
     """
 
     data: FrameData
     T_base: torch.Tensor
     delta: torch.nn.Parameter
+    T_base_host: np.ndarray
+    """``T_base`` on the host (``[4, 4]`` float64), copied where the keyframe was made."""
     fixed: bool = False
     published: np.ndarray | None = None
     """``[4, 4]`` float64 pose as of the last published map (``None`` until then)."""
@@ -176,9 +179,14 @@ class Keyframe:
     its fused optimiser updates ``delta`` without bumping the tensor's version counter)."""
 
     @classmethod
-    def create(cls, data: FrameData, T_world_cam: torch.Tensor, fixed: bool = False) -> Keyframe:
+    def create(cls, data: FrameData, T_world_cam: torch.Tensor, fixed: bool = False,
+               T_host: np.ndarray | None = None) -> Keyframe:
+        """A keyframe at ``T_world_cam [4, 4]`` (on the map's device); ``T_host``: the same pose already on the host
+        (else it is copied from the device)."""
         delta = torch.nn.Parameter(torch.zeros(6, dtype=torch.float64, device=T_world_cam.device))
-        return cls(data, T_world_cam.detach().to(torch.float64), delta, fixed)
+        T_base = T_world_cam.detach().to(torch.float64)
+        host = np.array(T_host, dtype=np.float64) if T_host is not None else T_base.cpu().numpy()
+        return cls(data, T_base, delta, host, fixed)
 
     def pose(self) -> torch.Tensor:
         """Current camera-to-world pose ``[4, 4]`` (differentiable in ``delta``)."""
@@ -192,7 +200,7 @@ class Keyframe:
     def published_pose(self) -> np.ndarray:
         """``[4, 4]`` float64 pose as of the last published map (the tracked pose before the first)."""
         published = self.published
-        return published if published is not None else self.T_base.cpu().numpy()
+        return published if published is not None else self.T_base_host
 
 
 def publish_keyframe_poses(keyframes: list[Keyframe] | tuple[Keyframe, ...]) -> None:
@@ -490,12 +498,13 @@ class Mapper:
                            point_voxels=located.voxel_idx)
         fuse_ms = (time.perf_counter() - t0) * 1e3 / len(frames)
         steps = []
-        for i, ((frame, _), T, (n_new, n_obs)) in enumerate(zip(frames, poses, counts, strict=True)):
+        for i, ((frame, pose_in), T, (n_new, n_obs)) in enumerate(zip(frames, poses, counts, strict=True)):
             t1 = time.perf_counter()
             first = not self.keyframes
             is_kf = (first or self._frames_since_keyframe + 1 >= self.config.keyframe_max_interval
                      or n_new > self.config.keyframe_ratio * max(n_obs, 1))
-            current = Keyframe.create(frame, T, fixed=first)
+            host = None if isinstance(pose_in, torch.Tensor) else np.asarray(pose_in)
+            current = Keyframe.create(frame, T, fixed=first, T_host=host)
             if is_kf:
                 self.keyframes.append(current)
                 self._frames_since_keyframe = 0

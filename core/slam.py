@@ -124,7 +124,7 @@ class FrameRecord:
         t0, t1 = self.ref_keyframe.data.timestamp_s, nxt.data.timestamp_s
         a = min(max((self.timestamp_s - t0) / (t1 - t0), 0.0), 1.0) if t1 > t0 else 1.0
         C_ref = T @ invert_pose(self.T_tracked)
-        C_next = nxt.published_pose() @ invert_pose(nxt.T_base.cpu().numpy())
+        C_next = nxt.published_pose() @ invert_pose(nxt.T_base_host)
         return nearest_rigid(C_ref @ scale_motion(invert_pose(C_ref) @ C_next, a) @ self.T_tracked)
 
 

@@ -327,6 +327,34 @@ def test_published_keyframe_poses_follow_every_trained_keyframe_and_skip_the_oth
     np.testing.assert_allclose(m.keyframes[2].published_pose(), m.keyframes[2].T_world_cam.numpy(), atol=1e-12)
 
 
+def test_a_keyframes_pose_before_its_first_publish_is_a_host_copy_of_the_pose_it_was_fused_with(monkeypatch):
+    """Other threads read a keyframe's pose before the map that holds it is published (the tracker's reference
+    keyframe, a trajectory): that is ``T_base_host``, copied where the keyframe was made (from the caller's host
+    array, or from the device for a tensor), never ``T_base`` on the mapping thread's device stream."""
+    from voxfusion.core.mapping import Keyframe
+
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=1", "mapping.iters=1"])
+    cap = SyntheticCapture(SyntheticConfig(n_frames=3, width=48, height=36))
+    m = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu")
+    frames = list(cap.frames())
+    pose = frames[0].T_world_cam.astype(np.float32)  # any host array; kept as float64
+    m.integrate(frame_to_device(frames[0], "cpu"), pose)
+    kf = m.keyframes[0]
+    assert kf.published is None and kf.T_base_host.dtype == np.float64
+    np.testing.assert_array_equal(kf.T_base_host, kf.T_base.numpy())
+    pose[:3, 3] += 1.0  # the caller's array is not kept
+    assert not np.array_equal(kf.T_base_host, pose)
+
+    def refuse(self):  # noqa: ANN001, ANN202
+        raise AssertionError("a pose was read from the device tensor")
+
+    monkeypatch.setattr(torch.Tensor, "cpu", refuse)
+    np.testing.assert_array_equal(kf.published_pose(), kf.T_base_host)
+    monkeypatch.undo()
+    from_tensor = Keyframe.create(frame_to_device(frames[1], "cpu"), torch.as_tensor(frames[1].T_world_cam))
+    np.testing.assert_array_equal(from_tensor.T_base_host, frames[1].T_world_cam)
+
+
 def test_compiled_mapping_step_matches_the_eager_fixed_shape_step():
     """``mapping.compile``: the renderer and losses through ``torch.compile`` (forward and, through autograd, the
     backward pass) against the same step run eagerly on the fixed-shape path: two mappers fed the same frames with
