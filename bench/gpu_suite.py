@@ -71,6 +71,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:  # for `bench`; appended, so an installed `voxfusion` (bench/gpu_lease.sh lays one
     sys.path.append(str(REPO_ROOT))  # out from this checkout without pip) wins over the checkout's bare voxfusion/
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from bench import bench_accel  # noqa: E402
@@ -81,9 +82,11 @@ from voxfusion.core.datasets.frame import RGBDFrame  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.eval.report import format_table, write_json  # noqa: E402
 from voxfusion.core.geometry import scale_intrinsics  # noqa: E402
+from voxfusion.core.render_graphs import OcclusionGraphs  # noqa: E402
 from voxfusion.core.slam import SlamSystem  # noqa: E402
 from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for  # noqa: E402
 from voxfusion.core.tracking import Tracker, TrackingConfig  # noqa: E402
+from voxfusion.core.tracking_graphs import record_eagerly  # noqa: E402
 
 SEVENSCENES = REPO_ROOT.parent / "shared" / "data" / "sevenscenes_redkitchen"
 """The 7-Scenes capture of the ``realtime`` section (``--sevenscenes`` names another copy, e.g. the frames
@@ -416,9 +419,44 @@ def measure_render_and_mesh(slam: SlamSystem, frames: list[RGBDFrame], sizes: Su
         times = sorted(_timed(lambda c=with_color: render(c))[1] for _ in range(sizes.render_repeats))
         row |= {f"{key}_ms_median": statistics.median(times),
                 f"{key}_ms_p90": times[min(len(times) - 1, int(0.9 * len(times)))]}
+    row |= measure_render_graphs(slam, K, f.T_world_cam, w, h, sizes.render_repeats)
     mesh, mesh_ms = _timed(slam.mesh)
     return {**row, "render_repeats": sizes.render_repeats, "mesh_ms": mesh_ms, "mesh_vertices": len(mesh.vertices),
             "mesh_faces": len(mesh.faces)}
+
+
+def measure_render_graphs(slam: SlamSystem, K: np.ndarray, T: np.ndarray, w: int, h: int, repeats: int) -> dict:
+    """The same depth image replayed from a CUDA graph (``render.cuda_graphs``, :class:`OcclusionGraphs`, off by
+    default until measured): median / p90 latency read back to the host (``render_graphs_ms_*``), the largest depth
+    difference from the eager image, and the graphs' counters. Without CUDA (smoke) the graphs' CPU stand-in
+    (:func:`record_eagerly`: the same code around the graph, run eagerly) is timed, and ``render_graphs_recorder``
+    says so."""
+    snap = slam.snapshot
+    if snap is None:
+        return {}
+    on_gpu = snap.voxels.device.type == "cuda"
+    graphs = OcclusionGraphs(snap.voxels.device, record=None if on_gpu else record_eagerly)
+    cfg = slam.config.render
+
+    def render() -> list[torch.Tensor]:
+        image = graphs.render(snap.voxels, snap.decoder, K, T, w, h, cfg, with_color=False)
+        if image is None:
+            raise RuntimeError("the occlusion graphs refused this map (see the log)")
+        return [x.cpu() for x in image if x is not None]
+
+    try:
+        for _ in range(3):  # eager (sets the budget), capture, a first replay
+            got = render()
+        times = sorted(_timed(render)[1] for _ in range(repeats))
+    except RuntimeError as e:
+        return {"render_graphs_error": str(e)}
+    want = slam.render_depth(K, T, w, h, with_color=False)
+    diff = float((got[0] - want.depth.cpu()).abs().max())
+    return {"render_graphs_ms_median": statistics.median(times),
+            "render_graphs_ms_p90": times[min(len(times) - 1, int(0.9 * len(times)))],
+            "render_graphs_max_depth_diff_m": diff, "render_graphs_captures": graphs.captures,
+            "render_graphs_capture_s": graphs.capture_s, "render_graphs_fallbacks": graphs.fallbacks,
+            "render_graphs_recorder": "CUDA graph" if on_gpu else "eager stand-in (no CUDA)"}
 
 
 # ----------------------------------------------------------------------------------------- capacity
@@ -777,6 +815,10 @@ def _print_tables(results: dict) -> None:
                   "value": rm["render_ms_median"]},
                  {"what": f"render {rm['render_wh'][0]}x{rm['render_wh'][1]} depth and colour [ms] (median)",
                   "value": rm.get("render_color_ms_median", "-")},
+                 {"what": f"render {rm['render_wh'][0]}x{rm['render_wh'][1]} depth, one CUDA graph "
+                          "(render.cuda_graphs) [ms] (median; max depth difference [m])",
+                  "value": (f"{rm['render_graphs_ms_median']:.2f} ({rm['render_graphs_max_depth_diff_m']:.1e})"
+                            if "render_graphs_ms_median" in rm else rm.get("render_graphs_error", "-"))},
                  {"what": f"mesh extraction [ms] ({rm['mesh_faces']} faces)", "value": rm["mesh_ms"]}]
     for name, r in results.get("accel", {}).get("variants", {}).items():
         rows.append({"what": f"{name}: mapping / tracking speed-up vs float32 eager",

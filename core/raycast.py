@@ -540,6 +540,14 @@ def fixed_walk_planes(grid: VoxelIndexGrid) -> int:
     return max(grid.box_shape) + 3
 
 
+def grid_walk_planes(grid: VoxelIndexGrid) -> int | None:
+    """Crossings per axis that cover any ray inside the whole of ``grid`` (its box with the border and the alignment of
+    a level-0 grid): a bound that holds while the map grows inside the grid, for a walk whose shapes must outlast the
+    map (a CUDA graph's); None beyond :data:`_FIXED_WALK_MAX_PLANES`."""
+    n = max(grid.shape) + 3
+    return n if n <= _FIXED_WALK_MAX_PLANES else None
+
+
 def _walk_fixed(grid: VoxelIndexGrid, v: float, w: _Walk, ok: torch.Tensor, n_planes: int,
                 max_hits: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`_walk_chunk` over whole rays (``ts = t0``, ``te = t1``) with every shape fixed and no read-back.
@@ -576,7 +584,7 @@ def _walk_fixed(grid: VoxelIndexGrid, v: float, w: _Walk, ok: torch.Tensor, n_pl
 
 @torch.no_grad()
 def intersect_voxels_fixed(voxel_map: VoxelMap, origins: torch.Tensor, dirs: torch.Tensor, max_distance_m: float,
-                           max_hits: int) -> tuple[VoxelHits, torch.Tensor] | None:
+                           max_hits: int, n_planes: int | None = None) -> tuple[VoxelHits, torch.Tensor] | None:
     """:func:`intersect_voxels` with every shape fixed by the map and no read-back (a GPU's occlusion render).
 
     The fast path reads the device back ~8 times (rays to walk, their lengths, chunk sizes, hit counts); here
@@ -590,10 +598,17 @@ def intersect_voxels_fixed(voxel_map: VoxelMap, origins: torch.Tensor, dirs: tor
         (read it with whatever the caller reads next; when True use :func:`intersect_voxels`). None where the map
         is empty, has no dense index grid or is longer than :data:`_FIXED_WALK_MAX_PLANES` crossings
         (:func:`intersect_voxels` then).
+
+    ``n_planes``: crossings per axis to walk (None: :func:`fixed_walk_planes`); more give the same hits in more
+    padding columns, fewer make the walk doubt rays that need them. A caller that keeps shapes across maps (a CUDA
+    graph) passes one bound for all of them.
     """
     _check_rays(origins, dirs)
     grid = voxel_map.index_grid() if voxel_map.voxel_bounds is not None else None
-    if grid is None or origins.shape[0] == 0 or fixed_walk_planes(grid) > _FIXED_WALK_MAX_PLANES:
+    if grid is None or origins.shape[0] == 0:
+        return None
+    n_planes = fixed_walk_planes(grid) if n_planes is None else n_planes
+    if n_planes > _FIXED_WALK_MAX_PLANES:
         return None
     out_dtype = origins.dtype if origins.is_floating_point() else torch.float32
     o, d, t0, t1, ok = _clip_rays(voxel_map, origins, dirs, max_distance_m, None)
@@ -605,7 +620,6 @@ def intersect_voxels_fixed(voxel_map: VoxelMap, origins: torch.Tensor, dirs: tor
     cell0 = torch.floor((o + d * t0[:, None]) / v).clamp(bmin.double(), bmax.double()).to(torch.int64)
     sd = torch.where(d != 0, d, torch.ones_like(d))
     walk = _Walk(o, d, sd, torch.sign(d).to(torch.int64), cell0, t0, t1, t0, t1)
-    n_planes = fixed_walk_planes(grid)
     columns = min(max_hits, 3 * n_planes + 1)
     rows = max(1, _event_budget(o.device) // (3 * n_planes + 1))
     parts = [_walk_fixed(grid, v, walk.take(slice(a, a + rows)), ok[a:a + rows], n_planes, columns)

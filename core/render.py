@@ -31,7 +31,13 @@ import torch
 
 from .errors import ConfigError, ShapeError, ValidationError
 from .field import NeuralField, SDFDecoder, SDFField
-from .raycast import VoxelHits, intersect_voxels, intersect_voxels_fixed, intersect_voxels_reference
+from .raycast import (
+    VoxelHits,
+    grid_walk_planes,
+    intersect_voxels,
+    intersect_voxels_fixed,
+    intersect_voxels_reference,
+)
 from .voxels import VoxelMap
 
 __all__ = [
@@ -79,6 +85,11 @@ class RenderConfig:
     """``D_max``: no samples beyond ``t = D_max`` (t-units: camera z-depth for camera rays)."""
     max_hits: int | None = None
     """``M_h`` override; None derives it from ``D_max`` (see :meth:`max_hits_for`)."""
+    cuda_graphs: bool = False
+    """A session's occlusion renders on a CUDA device replay a CUDA graph of the whole image
+    (:class:`~.render_graphs.OcclusionGraphs`: one launch and one read-back per image instead of ~350 operators and
+    two read-backs; the same image up to float rounding). Off until measured on a GPU: ``make bench-gpu``'s render
+    section times it beside the eager render."""
 
     def __post_init__(self) -> None:
         for name in ("truncation_m", "weight_scale_m", "step_ratio", "max_distance_m"):
@@ -153,9 +164,16 @@ def camera_rays(K: torch.Tensor | np.ndarray, T_world_cam: torch.Tensor | np.nda
         if pixels_uv.dim() != 2 or pixels_uv.shape[1] != 2:
             raise ShapeError("pixels_uv", tuple(pixels_uv.shape), "[N, 2]")
         uv = pixels_uv.to(T.device, torch.float64)
-    d_cam = camera_directions(Kt, uv).to(T.dtype)
-    dirs = d_cam @ T[:3, :3].transpose(0, 1)
-    origins = T[:3, 3].expand_as(dirs)
+    return rays_from_directions(camera_directions(Kt, uv), T, dtype)
+
+
+def rays_from_directions(d_cam: torch.Tensor, T_world_cam: torch.Tensor,
+                         dtype: torch.dtype = torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`camera_rays` from camera-frame directions ``d_cam [N, 3]`` (:func:`camera_directions`) and a pose
+    ``T_world_cam [4, 4]`` tensor on their device: ``origins [N, 3]`` and world ``dirs [N, 3]`` in ``dtype``. Only
+    device arithmetic (a CUDA graph can hold it, the pose copied into its input between replays)."""
+    dirs = d_cam.to(T_world_cam.dtype) @ T_world_cam[:3, :3].transpose(0, 1)
+    origins = T_world_cam[:3, 3].expand_as(dirs)
     return origins.to(dtype), dirs.to(dtype)
 
 
@@ -287,7 +305,7 @@ def render_rays(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torc
     hits = intersect_voxels(voxel_map, origins, dirs, config.max_distance_m,
                             config.max_hits_for(voxel_map.voxel_size_m), t_far)
     smp = sample_along_hits(hits, dn, config.step_ratio * voxel_map.voxel_size_m, training, generator)
-    return _shade(voxel_map, field, origins, dirs, dn, smp, hits.hit, config, with_color)
+    return _shade(voxel_map, field, origins, dirs, dn, smp, hits.hit, config, with_color)[0]
 
 
 def _rays_on_map(voxel_map: VoxelMap, origins: torch.Tensor,
@@ -305,8 +323,10 @@ def _rays_on_map(voxel_map: VoxelMap, origins: torch.Tensor,
 
 def _shade(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torch.Tensor, dirs: torch.Tensor,
            dn: torch.Tensor, smp: RaySamples, hit: torch.Tensor, config: RenderConfig,
-           with_color: bool) -> RenderOutput:
-    """The field at the samples inside the map (one read-back: which they are) and :func:`composite`."""
+           with_color: bool, queries: int | None = None) -> tuple[RenderOutput, torch.Tensor | None]:
+    """The field at the samples inside the map and :func:`composite`. ``queries`` None: exactly those samples (one
+    read-back: which they are); else at most that many, picked without waiting for the device, and with the output
+    a bool scalar on the device that says whether more were inside (the output must then not be used)."""
     if isinstance(field, SDFDecoder):
         field = NeuralField(voxel_map, field)
     # the samples under the mask lie in hit voxels (index >= 0): the neural field skips its check (a read-back)
@@ -315,14 +335,28 @@ def _shade(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torch.Ten
     t, mask = smp.t, smp.mask
     n, s = t.shape
     pts = origins[:, None, :] + dirs[:, None, :] * t[:, :, None]  # [N, S, 3]
-    inside = torch.nonzero(mask.reshape(-1)).squeeze(1)  # one read-back for both gathers
-    args = (pts.reshape(-1, 3).index_select(0, inside), smp.voxel_idx.reshape(-1).index_select(0, inside))
+    flat = mask.reshape(-1)
+    overflow = None
+    if queries is None:
+        inside = torch.nonzero(flat).squeeze(1)  # one read-back for both gathers
+        rows = inside
+    else:  # a fixed count: the padding points at a spare slot past the samples, and reads the last sample
+        inside = torch.nonzero_static(flat, size=queries, fill_value=n * s).squeeze(1)
+        overflow = flat.sum() > queries
+        rows = inside.clamp(max=n * s - 1)
+    vidx = smp.voxel_idx.reshape(-1).index_select(0, rows)
+    args = (pts.reshape(-1, 3).index_select(0, rows), vidx if queries is None else vidx.clamp(min=0))
     sdf_v, rgb_v = evaluate(*args, with_color=False) if neural and not with_color else evaluate(*args)
-    sdf = sdf_v.new_zeros(n, s).masked_scatter(mask, sdf_v)
-    rgb = None
-    if rgb_v is not None and with_color:
-        rgb = rgb_v.new_zeros(n, s, 3).masked_scatter(mask[:, :, None].expand(n, s, 3), rgb_v)
-    return composite(sdf, rgb, t, mask, dn, hit, config)
+    rgb_v = rgb_v if with_color else None
+    if queries is None:
+        sdf = sdf_v.new_zeros(n, s).masked_scatter(mask, sdf_v)
+        rgb = None if rgb_v is None else rgb_v.new_zeros(n, s, 3).masked_scatter(mask[:, :, None].expand(n, s, 3),
+                                                                                  rgb_v)
+    else:
+        sdf = sdf_v.new_zeros(n * s + 1).index_copy_(0, inside, sdf_v)[:-1].reshape(n, s)
+        rgb = None if rgb_v is None else rgb_v.new_zeros(n * s + 1, 3).index_copy_(0, inside, rgb_v)[:-1].reshape(
+            n, s, 3)
+    return composite(sdf, rgb, t, mask, dn, hit, config), overflow
 
 
 @torch.no_grad()
@@ -344,7 +378,64 @@ def render_rays_fixed(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins
     if doubtful:
         return None
     smp = _place_samples(hits, dn, lengths, cum, count, s, training=False, generator=None)
-    return _shade(voxel_map, field, origins, dirs, dn, smp, hits.hit, config, with_color)
+    return _shade(voxel_map, field, origins, dirs, dn, smp, hits.hit, config, with_color)[0]
+
+
+@dataclass(frozen=True)
+class RenderBudget:
+    """Fixed sizes of :func:`render_rays_static` (host integers, chosen from an earlier render of the same map):
+    ``samples`` per ray, ``queries`` of the field in all (samples inside the map), ``planes``: crossings per axis of
+    the ray walk (:func:`~.raycast.fixed_walk_planes` or more)."""
+
+    samples: int
+    queries: int
+    planes: int
+
+    def __post_init__(self) -> None:
+        for name in ("samples", "queries", "planes"):
+            if getattr(self, name) < 1:
+                raise ValidationError(name, f"must be >= 1, got {getattr(self, name)}")
+
+
+@torch.no_grad()
+def render_rays_static(voxel_map: VoxelMap, field: SDFField | SDFDecoder, origins: torch.Tensor, dirs: torch.Tensor,
+                       config: RenderConfig, budget: RenderBudget,
+                       with_color: bool = True) -> tuple[RenderOutput, torch.Tensor] | None:
+    """:func:`render_rays_fixed` with every size fixed by ``budget`` and no read-back at all: what a CUDA graph of an
+    occlusion render holds (:mod:`.render_graphs`). Returns the output (``[N, budget.samples]`` sample columns, those
+    past each ray's own masked) and ``doubt``, a bool scalar on the device, True where the output must not be used:
+    the walk doubts itself (:func:`~.raycast.intersect_voxels_fixed`), a ray needs more samples or the rays more field
+    queries than the budget holds (render again with :func:`render_rays_fixed`, and a larger budget). Within its
+    budget the same depth and colour as :func:`render_rays_fixed` up to float rounding (sums over more, empty
+    columns). None where the fixed walk does not apply (no dense index grid, a map too long for it)."""
+    origins, dirs, dn = _rays_on_map(voxel_map, origins, dirs)
+    got = intersect_voxels_fixed(voxel_map, origins, dirs, config.max_distance_m,
+                                 config.max_hits_for(voxel_map.voxel_size_m), n_planes=budget.planes)
+    if got is None:
+        return None
+    hits, doubt = got
+    lengths, cum, count = _sample_counts(hits, dn, config.step_ratio * voxel_map.voxel_size_m)
+    smp = _place_samples(hits, dn, lengths, cum, count, budget.samples, training=False, generator=None)
+    out, overflow = _shade(voxel_map, field, origins, dirs, dn, smp, hits.hit, config, with_color, budget.queries)
+    return out, doubt | (count.max() > budget.samples) | overflow
+
+
+def render_budget(voxel_map: VoxelMap, out: RenderOutput, headroom: float = 1.25) -> RenderBudget | None:
+    """A :class:`RenderBudget` for later renders of maps like ``voxel_map`` (a snapshot of the same session), from a
+    render of it (``out``, :func:`render_rays_fixed`'s): the samples per ray and the field queries it needed times
+    ``headroom`` (rounded up to multiples of 8 and 4096), the walk's planes from the index grid's whole box, so a map
+    that grows inside the grid needs no new budget (:func:`~.raycast.grid_walk_planes`). None where the map has no
+    dense index grid or is too long for the fixed walk. Reads ``out`` back."""
+    grid = voxel_map.index_grid() if voxel_map.voxel_bounds is not None else None
+    planes = None if grid is None else grid_walk_planes(grid)
+    if planes is None:
+        return None
+    samples, queries = out.t.shape[1], int(out.sample_mask.sum())
+
+    def up(x: float, m: int) -> int:
+        return max(m, int(math.ceil(x * headroom / m)) * m)
+
+    return RenderBudget(samples=up(samples, 8), queries=up(queries, 4096), planes=planes)
 
 
 def composite(sdf: torch.Tensor, rgb: torch.Tensor | None, t: torch.Tensor, mask: torch.Tensor,
@@ -520,6 +611,17 @@ def image_chunk_rays(device: torch.device) -> int:
 
 
 @torch.no_grad()
+def image_rays(out: RenderOutput, with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """An image's rays from a render: depth ``[N]`` and colour ``[N, 3]`` (None without, or unless ``with_color``)
+    where a surface was found, 0 elsewhere, and that validity ``[N]`` (``surface & hit``)."""
+    valid = out.surface & out.hit
+    depth = torch.where(valid, out.depth, torch.zeros_like(out.depth))
+    color = None
+    if with_color and out.color is not None:
+        color = torch.where(valid[:, None], out.color, torch.zeros_like(out.color))
+    return depth, valid, color
+
+
 def render_depth_image(voxel_map: VoxelMap, field: SDFField | SDFDecoder, K: torch.Tensor | np.ndarray,
                        T_world_cam: torch.Tensor | np.ndarray, width: int, height: int, config: RenderConfig,
                        chunk: int | None = None, with_color: bool = True,
@@ -546,11 +648,11 @@ def render_depth_image(voxel_map: VoxelMap, field: SDFField | SDFDecoder, K: tor
         out = render_rays_fixed(voxel_map, field, o, d, config, with_color) if fixed_walk else None
         if out is None:
             out = render_rays(voxel_map, field, o, d, config, training=False, with_color=with_color)
-        valid = out.surface & out.hit
-        depth_parts.append(torch.where(valid, out.depth, torch.zeros_like(out.depth)))
+        depth, valid, color = image_rays(out, with_color)
+        depth_parts.append(depth)
         valid_parts.append(valid)
-        if out.color is not None:
-            color_parts.append(torch.where(valid[:, None], out.color, torch.zeros_like(out.color)))
+        if color is not None:
+            color_parts.append(color)
     depth = torch.cat(depth_parts).reshape(height, width)
     valid = torch.cat(valid_parts).reshape(height, width)
     color = torch.cat(color_parts).reshape(height, width, 3) if color_parts else None

@@ -49,6 +49,7 @@ from .mesh import extract_map_mesh
 from .mesh.frame import WorldAxes, camera_up_forward
 from .optim import preload as preload_optimizer
 from .render import RenderConfig, RenderedImage, render_depth_image
+from .render_graphs import OcclusionGraphs
 from .slam_config import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
 from .trajectory import Trajectory
@@ -233,6 +234,7 @@ class SlamSystem:
         self.records: list[FrameRecord] = []
         self._snapshot: MapSnapshot | None = None
         self._mesh_cache: dict[tuple[int, int], trimesh.Trimesh] = {}
+        self._render_graphs: OcclusionGraphs | None = None
         self._lock = threading.RLock()
         self._cond = threading.Condition(self._lock)
         self._pending: deque[tuple[RGBDFrame, float]] = deque()
@@ -760,13 +762,30 @@ class SlamSystem:
                 frames_relocalised=len(self.relocalised))
 
     def render_depth(self, K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int,
-                     with_color: bool = True) -> RenderedImage:
-        """Depth (and colour) rendered from the newest snapshot at a camera pose (AR occlusion;
-        :meth:`MapSnapshot.render`)."""
-        snap = self.snapshot
+                     with_color: bool = True, snapshot: MapSnapshot | None = None) -> RenderedImage:
+        """Depth (and colour) rendered from ``snapshot`` (default: the newest) at a camera pose (AR occlusion;
+        :meth:`MapSnapshot.render`, or its CUDA graph with ``render.cuda_graphs``). Pass the snapshot whose version
+        you label the image with: mapping may publish a newer one meanwhile."""
+        snap = self.snapshot if snapshot is None else snapshot
         if snap is None:
             raise MapNotReadyError("the map is empty: no frame has been mapped yet")
+        graphs = self._occlusion_graphs()
+        if graphs is not None:
+            image = graphs.render(snap.voxels, snap.decoder, K, T_world_cam, width, height, self.config.render,
+                                  with_color)
+            if image is not None:
+                return image
         return snap.render(K, T_world_cam, width, height, self.config.render, with_color=with_color)
+
+    def _occlusion_graphs(self) -> OcclusionGraphs | None:
+        """The session's :class:`~.render_graphs.OcclusionGraphs` (``render.cuda_graphs`` on a CUDA device), made on
+        first use."""
+        if not self.config.render.cuda_graphs or self.device.type != "cuda":
+            return None
+        with self._lock:
+            if self._render_graphs is None:
+                self._render_graphs = OcclusionGraphs(self.device)
+            return self._render_graphs
 
     def mesh(self, mesh_res: int | None = None, snapshot: MapSnapshot | None = None) -> trimesh.Trimesh:
         """Mesh of ``snapshot`` (default: the newest) at ``mesh_res`` samples per voxel edge (default

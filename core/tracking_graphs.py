@@ -28,7 +28,6 @@ the stages never wait for the host or copy from it (what capture forbids).
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import logging
 import time
@@ -94,7 +93,10 @@ _REFERENCE_INPUTS = ("depth_padded", "K", "T_ref_world", "gray", "gray_blurred")
 image width and the baseline, which the capture's key holds)."""
 
 
-Recorder = Callable[[Callable[[], LMState | None]], tuple[LMState | None, Callable[[], None]]]
+Recorded = LMState | tuple[torch.Tensor | None, ...] | None
+"""What a recorded block returns: a solver state, or a tuple of tensors (the occlusion render's,
+:mod:`.render_graphs`)."""
+Recorder = Callable[[Callable[[], Recorded]], tuple[Recorded, Callable[[], None]]]
 """Records a block: ``record(fn) -> (fn's output, replay)``; after ``replay()`` the output's tensors hold what ``fn``
 would return on the inputs' current values. :class:`CudaGraphRecorder` on a GPU; :func:`record_eagerly` (``fn`` run
 again at each replay) is its CPU stand-in, for tests of everything around the graphs."""
@@ -108,7 +110,7 @@ class CudaGraphRecorder:
     def __init__(self, stream: torch.cuda.Stream) -> None:
         self.stream = stream
 
-    def __call__(self, fn: Callable[[], LMState | None]) -> tuple[LMState | None, Callable[[], None]]:
+    def __call__(self, fn: Callable[[], Recorded]) -> tuple[Recorded, Callable[[], None]]:
         graph = torch.cuda.CUDAGraph()
         current = torch.cuda.current_stream(self.stream.device)
         self.stream.wait_stream(current)
@@ -136,7 +138,7 @@ class CudaGraphRecorder:
         current.wait_stream(self.stream)
 
 
-def record_eagerly(fn: Callable[[], LMState | None]) -> tuple[LMState | None, Callable[[], None]]:
+def record_eagerly(fn: Callable[[], Recorded]) -> tuple[Recorded, Callable[[], None]]:
     """The CPU stand-in :data:`Recorder`: ``fn`` runs now, and again at each replay, its new output copied into the
     first one's tensors (what a graph replay does to its static outputs)."""
     out = fn()
@@ -149,9 +151,12 @@ def record_eagerly(fn: Callable[[], LMState | None]) -> tuple[LMState | None, Ca
     return out, replay
 
 
-def _copy_state(dst: LMState, src: LMState) -> None:
-    for d, t in zip(_state_tensors(dst), _state_tensors(src), strict=True):
-        d.copy_(t)
+def _copy_state(dst: LMState | tuple[torch.Tensor | None, ...], src: LMState | tuple[torch.Tensor | None, ...]) -> None:
+    pairs = zip(_state_tensors(dst), _state_tensors(src), strict=True) if isinstance(dst, LMState) \
+        else zip(dst, src, strict=True)
+    for d, t in pairs:
+        if d is not None:
+            d.copy_(t)
 
 
 MAP_TENSORS = ("embeddings", "_voxel_coords", "_voxel_vertex_ids", "_sorted_voxel_codes", "_voxel_perm",
@@ -186,10 +191,11 @@ def _read_tensors(voxels: VoxelMap) -> tuple[str, ...]:
 
 def _map_tensors(voxels: VoxelMap, decoder: SDFDecoder) -> list[torch.Tensor | None]:
     """What a capture reads of a map, in a fixed order: :func:`_read_tensors`, the level-0 grid's table (None without
-    a grid) and the decoder's parameters and buffers."""
+    a grid), the voxel bounds (the occlusion render's ray clipping; None for an empty map) and the decoder's
+    parameters and buffers."""
     grid = _level0_grid(voxels)
     return [*(getattr(voxels, n) for n in _read_tensors(voxels)), None if grid is None else grid.table,
-            *decoder.state_dict(keep_vars=True).values()]
+            *(voxels.voxel_bounds or (None, None)), *decoder.state_dict(keep_vars=True).values()]
 
 
 class StaticMap:
@@ -212,8 +218,10 @@ class StaticMap:
                 copy_ = t.clone()
             setattr(static, name, torch.nn.Parameter(copy_, requires_grad=False) if name == "embeddings" else copy_)
         static._grids = {0: None if grid is None else dataclasses.replace(grid, table=grid.table.clone())}
+        if voxels.voxel_bounds is not None:  # the render clips its rays to them; they grow inside the grid's box
+            static._bounds = tuple(b.clone() for b in voxels.voxel_bounds)
         self.voxels = static
-        self.decoder = copy.deepcopy(decoder)
+        self.decoder = decoder.frozen_copy()
         self._targets = _map_tensors(static, self.decoder)
         self._loaded = [(t, None if t is None else t._version) for t in _map_tensors(voxels, decoder)]
 

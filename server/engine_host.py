@@ -306,8 +306,8 @@ class EngineHost:
     def render(self, req: RenderRequest) -> tuple[RenderedImage, int]:
         """Depth (+ colour) at a client's camera from the newest map, and that map's version."""
         snap = self._snapshot()
-        return snap.render(req.K(), req.T_world_cam_cv(), req.width, req.height, self.config.render,
-                           with_color=req.with_color), snap.version
+        return self.slam.render_depth(req.K(), req.T_world_cam_cv(), req.width, req.height,
+                                      with_color=req.with_color, snapshot=snap), snap.version
 
     def mesh_bytes(self, fmt: str, detail: MeshDetail = "full") -> tuple[bytes, int]:
         """The mesh of the newest map as ``fmt`` at ``detail`` (``full``: ``config.mesh_res``; ``preview``:

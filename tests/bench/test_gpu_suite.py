@@ -45,6 +45,10 @@ def test_smoke_runs_every_section_and_writes_json(tmp_path: Path, monkeypatch):
     assert result["render_mesh"]["render_wh"] == list(gpu_suite.SMOKE.render_wh)
     rm = result["render_mesh"]
     assert rm["render_ms_median"] > 0 and rm["render_color_ms_median"] > 0 and rm["mesh_ms"] > 0
+    # the occlusion graphs' path (its CPU stand-in here): the eager image, no fallback
+    assert rm["render_graphs_recorder"] == "eager stand-in (no CUDA)" and rm["render_graphs_ms_median"] > 0
+    assert rm["render_graphs_max_depth_diff_m"] < 1e-4 and rm["render_graphs_fallbacks"] == 0
+    assert rm["render_graphs_captures"] == 1
     cap = result["capacity"]
     assert cap["isolation"] == "thread" and 1 <= len(cap["rows"]) <= 2 and cap["rows"][0]["sessions"] == 1
     assert set(result["memory"]) == {"iterations", "realtime/synthetic", "render_mesh", "accel", "capacity"}

@@ -14,9 +14,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from torch.overrides import TorchFunctionMode
-from torch.utils._python_dispatch import TorchDispatchMode
 
+from tests.core.hostwaits import HostData, HostWaits
 from voxfusion.core import tracking_graphs, tracking_sdf
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.framedata import frame_to_device
@@ -38,9 +37,6 @@ cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA de
 
 TINY = ["mapping.map_every=1", "mapping.rays_per_frame=192", "mapping.iters=8", "mapping.first_frame_iters=40",
         "field.sdf_hidden=64", "field.color_hidden=64"]
-SYNC_OPS = {"_local_scalar_dense", "nonzero", "nonzero_static", "masked_select", "_unique", "_unique2", "unique_dim",
-            "unique_consecutive", "repeat_interleave", "is_nonzero", "equal", "item"}
-HOST_DATA = {torch.tensor, torch.as_tensor, torch.from_numpy, torch.Tensor.new_tensor}
 EVERY_TERM = SdfSolverConfig(iters=3, w_color=0.2, w_frame=1.0, w_photo=0.1, w_photo_blurred=0.3,
                              prior_info=(50.0, 20.0))
 
@@ -70,37 +66,6 @@ def solver_inputs(cap, cfg, mapper, index: int, device: str, seed: int = 3, snap
     gen = torch.Generator(device=device).manual_seed(seed)
     finest = sample_points(frame, 512, gen, with_gray=True, blurred=images.blurred)
     return tr, [finest.prefix(128), finest]
-
-
-class HostWaits(TorchDispatchMode):
-    """Records the operators that make the host wait for the device (or read a device value), or copy to it."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.seen: list[str] = []
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
-        name = func._overloadpacket.__name__
-        masks = name in ("index", "index_put", "index_put_") and any(
-            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else ()))
-        # a boolean mask as an index is a nonzero inside the kernel; lift_fresh: a tensor made from host data (a
-        # Python scalar written by indexing, torch.tensor), which on a GPU is a host-to-device copy
-        if name in SYNC_OPS or masks or name == "lift_fresh":
-            self.seen.append(str(func))
-        return func(*args, **(kwargs or {}))
-
-
-class HostData(TorchFunctionMode):
-    """Records tensors made from host data (a host-to-device copy on a GPU)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.seen: list[str] = []
-
-    def __torch_function__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
-        if func in HOST_DATA:
-            self.seen.append(getattr(func, "__name__", str(func)))
-        return func(*args, **(kwargs or {}))
 
 
 def test_the_detectors_see_what_they_look_for():

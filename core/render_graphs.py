@@ -1,0 +1,208 @@
+"""CUDA graphs of the occlusion render (``render.cuda_graphs``): :meth:`.slam.SlamSystem.render_depth` on a GPU.
+
+An occlusion image (256x192, depth alone) is ~350 operators: on an H100 it took 11.3-12.0 ms eager
+(``bench/results/gpu-nvidia-h100-80gb-hbm3-lease-6.json`` to ``-8.json``), where most operators are cheap and each
+costs a launch and the host's time to issue it, plus two read-backs (the samples per ray, the samples inside the map).
+:class:`OcclusionGraphs` records the whole image once, :func:`~.render.render_rays_static` with fixed sizes
+(:class:`~.render.RenderBudget`, measured on the session's first eager render with some headroom) and no read-back,
+over a static copy of the map snapshot (:class:`~.tracking_graphs.StaticMap`, its bounds included) and a static
+pose; a render then copies the newest snapshot and the pose in, replays, and reads back one flag with the image. Where
+the flag says the budget was short (a ray needed more samples, the rays more field queries, or the walk doubts
+itself) that image is rendered eagerly and the budget grows (a new capture at the next render); a new map structure
+(:func:`~.tracking_graphs.map_signature`), image size, intrinsics or option set is captured again.
+
+The eager :func:`~.render.render_depth_image` is the reference: the replayed image equals it up to float rounding
+(sums over the budget's empty sample columns), which the CPU tests check with :func:`~.tracking_graphs.record_eagerly`
+standing in for the graphs (the same static copies, the same budgets), and the CUDA tests on a GPU. Anything that fails
+while capturing or replaying is logged once at WARNING and the session renders eagerly from then on. Off by default
+until measured on a GPU (``make bench-gpu``'s render section measures both).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from .errors import VoxFusionError
+from .field import SDFDecoder
+from .raycast import grid_walk_planes
+from .render import (
+    RenderBudget,
+    RenderConfig,
+    RenderedImage,
+    _as_tensor,
+    camera_directions,
+    image_rays,
+    rays_from_directions,
+    render_budget,
+    render_rays_fixed,
+    render_rays_static,
+)
+from .tracking_graphs import CudaGraphRecorder, Recorder, StaticMap, map_signature
+from .voxels import VoxelMap
+
+log = logging.getLogger("voxfusion.render")
+
+__all__ = ["OcclusionGraphs", "MAX_GRAPHS"]
+
+MAX_GRAPHS = 2
+"""Recorded images an :class:`OcclusionGraphs` keeps (each with its static copy of the map): a depth-only one and one
+with colour for the session's camera; a third drops them all."""
+
+
+def _pixel_directions(K: np.ndarray | torch.Tensor, width: int, height: int, device: torch.device) -> torch.Tensor:
+    """Camera-frame directions ``[H W, 3]`` float64 of every pixel, row-major (:func:`~.render.camera_rays`' rays)."""
+    v, u = torch.meshgrid(torch.arange(height, device=device, dtype=torch.float64),
+                          torch.arange(width, device=device, dtype=torch.float64), indexing="ij")
+    Kt = _as_tensor(K, "K", (3, 3), device).to(torch.float64)
+    return camera_directions(Kt, torch.stack([u.reshape(-1), v.reshape(-1)], -1))
+
+
+def _image(depth: torch.Tensor, valid: torch.Tensor, color: torch.Tensor | None, width: int,
+           height: int) -> RenderedImage:
+    """The flat ``[H W]`` outputs as a :class:`~.render.RenderedImage` of fresh tensors (a replay overwrites them)."""
+    return RenderedImage(depth.reshape(height, width).clone(), None if color is None
+                         else color.reshape(height, width, 3).clone(), valid.reshape(height, width).clone())
+
+
+class _ImageGraph:
+    """One recorded image: a map structure, a camera (intrinsics and size), options and a budget."""
+
+    def __init__(self, key: tuple, voxels: VoxelMap, decoder: SDFDecoder, d_cam: torch.Tensor, T: torch.Tensor,
+                 config: RenderConfig, budget: RenderBudget, with_color: bool, record: Recorder,
+                 warm_up: Callable[[Callable[[], None]], None] | None) -> None:
+        self.key = key
+        self.map = StaticMap(voxels, decoder)
+        self.d_cam = d_cam
+        self.T = T.clone()
+        dtype = voxels.embeddings.dtype
+
+        def run() -> tuple[torch.Tensor | None, ...]:
+            o, d = rays_from_directions(self.d_cam, self.T, dtype)
+            got = render_rays_static(self.map.voxels, self.map.decoder, o, d, config, budget, with_color)
+            assert got is not None  # the caller checked that the fixed walk applies
+            out, doubt = got
+            return (*image_rays(out, with_color), doubt)
+
+        if warm_up is not None:
+            warm_up(run)
+        self.outputs, self.replay = record(run)
+
+    def render(self, voxels: VoxelMap, decoder: SDFDecoder,
+               T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, bool]:
+        """Replay at pose ``T`` with the snapshot copied in: ``(depth, valid, color, doubt)`` (one read-back)."""
+        self.map.load(voxels, decoder)
+        self.T.copy_(T)
+        self.replay()
+        depth, valid, color, doubt = self.outputs
+        return depth, valid, color, bool(doubt)
+
+
+class OcclusionGraphs:
+    """:func:`~.render.render_depth_image` replayed from CUDA graphs (see the module docstring); one per session.
+
+    Args:
+        device: the CUDA device of the maps it will be given.
+        record: how an image is recorded (:data:`~.tracking_graphs.Recorder`); None: CUDA graphs on a stream of this
+            object's own, warmed up before each capture. Tests pass :func:`~.tracking_graphs.record_eagerly`.
+
+    :meth:`render` returns None where the eager render must run instead (a map without a dense index grid or too
+    long for the fixed walk; after a failure, for good, logged once: :attr:`failed`). Thread-safe (one render at a
+    time). :attr:`captures` / :attr:`capture_s` count the images recorded and their host seconds, :attr:`replays` and
+    :attr:`fallbacks` the renders replayed and those whose budget was short (benchmarks).
+    """
+
+    def __init__(self, device: torch.device, record: Recorder | None = None) -> None:
+        self._warm_up: Callable[[Callable[[], None]], None] | None = None
+        if record is None:
+            recorder = CudaGraphRecorder(torch.cuda.Stream(device))
+            record, self._warm_up = recorder, recorder.warm_up
+        self._record = record
+        self._lock = threading.Lock()
+        self._graphs: dict[tuple, _ImageGraph] = {}
+        """At most :data:`MAX_GRAPHS` recorded images, by camera and colour (depth-only requests and colour ones
+        alternate without a capture each)."""
+        self._budget: RenderBudget | None = None
+        self._directions: dict[tuple, torch.Tensor] = {}
+        self.failed = False
+        self.captures = 0
+        self.capture_s = 0.0
+        self.replays = 0
+        self.fallbacks = 0
+
+    def render(self, voxels: VoxelMap, decoder: SDFDecoder, K: np.ndarray | torch.Tensor,
+               T_world_cam: np.ndarray | torch.Tensor, width: int, height: int, config: RenderConfig,
+               with_color: bool = True) -> RenderedImage | None:
+        """The image :func:`~.render.render_depth_image` renders (``K`` ``[3, 3]`` for ``width`` x ``height``,
+        ``T_world_cam`` ``[4, 4]``), from the graph of this map structure, camera and options, or None."""
+        if self.failed:
+            return None
+        with self._lock:
+            try:
+                return self._render(voxels, decoder, K, T_world_cam, width, height, config, with_color)
+            except VoxFusionError:
+                raise  # bad input, not the graphs' failure
+            except Exception as e:  # noqa: BLE001 - capture or replay refused (out of memory included): stay eager
+                first_line = str(e).splitlines()[0] if str(e) else ""
+                log.warning("render.cuda_graphs: CUDA graph capture or replay failed (%s: %s); rendering eagerly",
+                            type(e).__name__, first_line)
+                self.failed = True
+                self._graphs = {}
+                return None
+
+    def _render(self, voxels: VoxelMap, decoder: SDFDecoder, K: np.ndarray | torch.Tensor,
+                T_world_cam: np.ndarray | torch.Tensor, width: int, height: int, config: RenderConfig,
+                with_color: bool) -> RenderedImage | None:
+        dev = voxels.device
+        grid = voxels.index_grid() if voxels.voxel_bounds is not None else None
+        planes = None if grid is None else grid_walk_planes(grid)
+        if planes is None:  # no dense grid, or a map too long for the fixed walk
+            return None
+        T = _as_tensor(T_world_cam, "T_world_cam", (4, 4), dev).to(torch.float64)
+        K_key = tuple(np.asarray(K.detach().cpu() if isinstance(K, torch.Tensor) else K, dtype=np.float64).ravel())
+        camera = (width, height, K_key)
+        d_cam = self._directions.get(camera)
+        if d_cam is None:
+            if len(self._directions) >= MAX_GRAPHS:
+                self._directions = {}
+            d_cam = self._directions[camera] = _pixel_directions(K, width, height, dev)
+        budget = self._budget
+        if budget is not None and budget.planes < planes:
+            budget = None  # the grid grew: measure again
+        if budget is not None:
+            slot = (camera, with_color)
+            key = (map_signature(voxels, decoder), config, budget)
+            graph = self._graphs.get(slot)
+            if graph is None or graph.key != key:
+                self._graphs.pop(slot, None)  # the old graph's memory goes back before the new one takes its own
+                if len(self._graphs) >= MAX_GRAPHS:
+                    self._graphs = {}
+                t0 = time.perf_counter()
+                graph = _ImageGraph(key, voxels, decoder, d_cam, T, config, budget, with_color, self._record,
+                                    self._warm_up)
+                self._graphs[slot] = graph
+                self.captures += 1
+                self.capture_s += time.perf_counter() - t0
+            depth, valid, color, doubt = graph.render(voxels, decoder, T)
+            self.replays += 1
+            if not doubt:
+                return _image(depth, valid, color, width, height)
+            self.fallbacks += 1
+        # eager: the session's first render, or one the budget fell short of; it sets the budget for the next
+        o, d = rays_from_directions(d_cam, T, voxels.embeddings.dtype)
+        out = render_rays_fixed(voxels, decoder, o, d, config, with_color)
+        if out is None:
+            return None
+        measured = render_budget(voxels, out)
+        if measured is not None:
+            self._budget = measured if self._budget is None else RenderBudget(
+                *(max(a, b) for a, b in zip(dataclasses.astuple(self._budget), dataclasses.astuple(measured),
+                                            strict=True)))
+        depth, valid, color = image_rays(out, with_color)
+        return _image(depth, valid, color, width, height)

@@ -1,0 +1,228 @@
+"""The occlusion render as one CUDA graph (core/render_graphs.py) against the eager render.
+
+On a CPU: the budgeted render (:func:`render_rays_static`) is the fixed-walk render up to float rounding, says when its
+budget is short, never waits for the host and reads only what :class:`StaticMap` copies; :class:`OcclusionGraphs`
+with :func:`record_eagerly` standing in for the graphs (the same static copies, budgets and fallbacks) renders what
+:func:`render_depth_image` renders, for later snapshots of a growing map too. With CUDA: the replayed image is the
+eager one, through :meth:`SlamSystem.render_depth`.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from tests.core.hostwaits import HostData, HostWaits
+from voxfusion.core import render_graphs
+from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
+from voxfusion.core.framedata import frame_to_device
+from voxfusion.core.geometry import scale_intrinsics
+from voxfusion.core.reconstruct import make_mapper
+from voxfusion.core.render import (
+    RenderBudget,
+    camera_rays,
+    render_budget,
+    render_depth_image,
+    render_rays_fixed,
+    render_rays_static,
+)
+from voxfusion.core.render_graphs import OcclusionGraphs
+from voxfusion.core.slam_config import load_preset
+from voxfusion.core.tracking_graphs import GRID_MAP_TENSORS, record_eagerly
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+
+TINY = ["mapping.first_frame_iters=20", "mapping.iters=2", "field.sdf_hidden=32", "field.color_hidden=32"]
+W, H = 64, 48
+
+
+def room(device: str = "cpu", frames: range = range(0, 12, 3)):
+    cap = SyntheticCapture(SyntheticConfig(n_frames=30, width=96, height=72, seed=2))
+    cfg = load_preset("cpu-small", [f"device={device}", *TINY])
+    mapper = make_mapper(cfg)
+    for i in frames:
+        mapper.integrate(frame_to_device(cap[i], device), cap[i].T_world_cam)
+    return cap, cfg, mapper
+
+
+def published(mapper):
+    """The map as a session publishes it (:meth:`SlamSystem._publish`): a snapshot of the voxels and a frozen copy of
+    the decoder (the training decoder's fused Adam updates its parameters in place without a new version)."""
+    return mapper.voxels.snapshot(), mapper.decoder.frozen_copy()
+
+
+def camera(cap, index: int) -> tuple[np.ndarray, np.ndarray]:
+    f = cap[index]
+    return scale_intrinsics(f.K, (f.width, f.height), (W, H)), f.T_world_cam
+
+
+def assert_same_image(got, want) -> None:
+    assert torch.equal(got.valid, want.valid)
+    torch.testing.assert_close(got.depth, want.depth, rtol=0, atol=1e-5)
+    if want.color is None:
+        assert got.color is None
+    else:
+        torch.testing.assert_close(got.color, want.color, rtol=0, atol=1e-5)
+
+
+def test_the_budgeted_render_is_the_fixed_render_within_its_budget_and_doubts_beyond():
+    cap, cfg, mapper = room()
+    snap = mapper.voxels.snapshot()
+    for index in (2, 7):
+        o, d = camera_rays(*camera(cap, index), width=W, height=H)
+        ref = render_rays_fixed(snap, mapper.decoder, o, d, cfg.render, with_color=True)
+        budget = render_budget(snap, ref)
+        assert budget.samples >= ref.t.shape[1] and budget.queries >= int(ref.sample_mask.sum())
+        out, doubt = render_rays_static(snap, mapper.decoder, o, d, cfg.render, budget, with_color=True)
+        assert not bool(doubt) and out.t.shape[1] == budget.samples
+        assert torch.equal(out.hit, ref.hit) and torch.equal(out.surface, ref.surface) and bool(ref.surface.any())
+        torch.testing.assert_close(out.depth, ref.depth, rtol=0, atol=1e-5)
+        torch.testing.assert_close(out.color, ref.color, rtol=0, atol=1e-5)
+        for short in (RenderBudget(ref.t.shape[1] - 1, budget.queries, budget.planes),
+                      RenderBudget(budget.samples, int(ref.sample_mask.sum()) - 1, budget.planes),
+                      RenderBudget(budget.samples, budget.queries, 2)):
+            assert bool(render_rays_static(snap, mapper.decoder, o, d, cfg.render, short)[1]), short
+    with pytest.raises(Exception, match="queries"):
+        RenderBudget(8, 0, 8)
+
+
+def test_the_budgeted_render_never_waits_for_the_host_and_reads_only_what_the_static_map_copies():
+    cap, cfg, mapper = room()
+    snap = mapper.voxels.snapshot()
+    o, d = camera_rays(*camera(cap, 4), width=W, height=H)
+    budget = render_budget(snap, render_rays_fixed(snap, mapper.decoder, o, d, cfg.render))
+    clean, _ = render_rays_static(snap, mapper.decoder, o, d, cfg.render, budget, with_color=True)
+    with HostWaits(allow=frozenset({"nonzero_static"})) as waits, HostData() as data:
+        render_rays_static(snap, mapper.decoder, o, d, cfg.render, budget, with_color=True)
+    assert waits.seen == [] and data.seen == []
+    # the map's tensors that StaticMap does not copy hold garbage: the same image
+    poisoned = object.__new__(type(snap))
+    poisoned.__dict__.update(snap.__dict__)
+    for name, value in snap.__dict__.items():
+        if isinstance(value, torch.Tensor) and name not in GRID_MAP_TENSORS:
+            setattr(poisoned, name, ~value if value.dtype == torch.bool else torch.full_like(value, -7))
+    dirty, doubt = render_rays_static(poisoned, mapper.decoder, o, d, cfg.render, budget, with_color=True)
+    assert not bool(doubt) and torch.equal(dirty.depth, clean.depth) and torch.equal(dirty.color, clean.color)
+
+
+@pytest.mark.parametrize("with_color", [False, True])
+def test_occlusion_graphs_render_what_the_eager_render_does_as_the_map_grows(with_color):
+    cap, cfg, mapper = room()
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
+    for step, index in enumerate((3, 5, 6)):
+        K, T = camera(cap, index)
+        snap, decoder = published(mapper)
+        want = render_depth_image(snap, decoder, K, T, W, H, cfg.render, with_color=with_color, fixed_walk=True)
+        got = graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=with_color)
+        assert_same_image(got, want)
+        if step == 0:
+            assert (graphs.captures, graphs.replays) == (0, 0)  # the first render is eager and sets the budget
+        # the map moves on: new frames train the field, allocate voxels and widen its bounds
+        mapper.integrate(frame_to_device(cap[12 + 4 * step], "cpu"), cap[12 + 4 * step].T_world_cam)
+    assert graphs.replays == 2 and graphs.fallbacks == 0 and graphs.captures >= 1
+    # a pose far from the first ones, and a snapshot after more training: still the eager image
+    K, T = camera(cap, 20)
+    snap, decoder = published(mapper)
+    assert_same_image(graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=with_color),
+                      render_depth_image(snap, decoder, K, T, W, H, cfg.render, with_color=with_color,
+                                         fixed_walk=True))
+
+
+def test_a_snapshot_whose_bounds_grew_inside_the_grid_is_replayed_with_its_own_bounds():
+    """The render clips its rays to the map's bounds; a later snapshot of the same structure (no new capture) with
+    wider bounds must not be clipped to the first one's (StaticMap copies the bounds in)."""
+    cap, cfg, mapper = room(frames=range(0, 3, 3))
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
+    K, T = camera(cap, 1)
+    for _ in range(2):  # eager, then the first capture
+        graphs.render(mapper.voxels.snapshot(), mapper.decoder, K, T, W, H, cfg.render, with_color=False)
+    (key,) = (g.key for g in graphs._graphs.values())
+    before = [b.clone() for b in mapper.voxels.voxel_bounds]
+    for i in range(1, 7):  # nearby frames: a few voxels, the same structure (voxel capacity, index grid)
+        mapper.integrate(frame_to_device(cap[i], "cpu"), cap[i].T_world_cam, optimize=False)
+    snap = mapper.voxels.snapshot()
+    assert any(not torch.equal(a, b) for a, b in zip(before, snap.voxel_bounds, strict=True))
+    for index in (2, 6):
+        K, T = camera(cap, index)
+        got = graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
+        want = render_depth_image(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False, fixed_walk=True)
+        assert_same_image(got, want)
+    assert [g.key for g in graphs._graphs.values()] == [key] and graphs.captures == 1 and graphs.replays == 3
+
+
+def test_depth_and_colour_requests_keep_a_graph_each():
+    cap, cfg, mapper = room()
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
+    snap, decoder = published(mapper)
+    K, T = camera(cap, 4)
+    for with_color in (False, False, True, False, True):
+        got = graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=with_color)
+        assert_same_image(got, render_depth_image(snap, decoder, K, T, W, H, cfg.render, with_color=with_color))
+    assert (graphs.captures, graphs.replays, graphs.fallbacks) == (2, 4, 0)
+
+
+def test_a_short_budget_falls_back_to_the_eager_image_and_grows():
+    cap, cfg, mapper = room()
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
+    snap = mapper.voxels.snapshot()
+    K, T = camera(cap, 4)
+    graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
+    measured = graphs._budget
+    graphs._budget = RenderBudget(samples=4, queries=measured.queries, planes=measured.planes)
+    got = graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
+    assert_same_image(got, render_depth_image(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False))
+    assert graphs.fallbacks == 1 and graphs._budget.samples >= measured.samples
+    again = graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
+    assert_same_image(again, got)
+    assert graphs.fallbacks == 1 and graphs.replays == 2 and graphs.captures == 2
+
+
+def test_a_failed_capture_leaves_the_renders_eager_after_one_warning(caplog):
+    cap, cfg, mapper = room()
+
+    def refuse(fn):  # noqa: ANN001, ANN202
+        raise RuntimeError("operation not permitted when stream is capturing")
+
+    graphs = OcclusionGraphs(torch.device("cpu"), record=refuse)
+    snap = mapper.voxels.snapshot()
+    K, T = camera(cap, 4)
+    assert graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render) is not None  # eager: sets the budget
+    with caplog.at_level(logging.WARNING, logger="voxfusion.render"):
+        assert graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render) is None
+        assert graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render) is None
+    assert graphs.failed and sum("render.cuda_graphs" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_map_the_fixed_walk_does_not_take_is_left_to_the_eager_render(monkeypatch):
+    cap, cfg, mapper = room()
+    snap = mapper.voxels.snapshot()
+    monkeypatch.setattr(snap, "index_grid", lambda level=0: None)
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
+    assert graphs.render(snap, mapper.decoder, *camera(cap, 4), W, H, cfg.render) is None
+    assert not graphs.failed
+
+
+@cuda
+@pytest.mark.parametrize("with_color", [False, True])
+def test_replayed_occlusion_images_are_the_eager_ones_on_cuda(with_color):
+    from voxfusion.core.slam import SlamSystem
+
+    cap = SyntheticCapture(SyntheticConfig(n_frames=30, width=96, height=72, seed=2))
+    cfg = load_preset("cpu-small", ["device=cuda", *TINY, "render.cuda_graphs=true"])
+    slam = SlamSystem(cfg)
+    for i in range(0, 12, 2):
+        slam.process(cap[i])
+    graphs = slam._occlusion_graphs()
+    assert graphs is not None
+    for index in (3, 5, 5, 9):
+        K, T = camera(cap, index)
+        got = slam.render_depth(K, T, W, H, with_color=with_color)
+        snap = slam.snapshot
+        want = render_depth_image(snap.voxels, snap.decoder, K, T, W, H, cfg.render, with_color=with_color)
+        assert_same_image(got, want)
+        slam.process(cap[12 + index])
+    assert not graphs.failed and graphs.replays >= 3 and graphs.captures >= 1
+    assert render_graphs.log.name == "voxfusion.render"
