@@ -14,8 +14,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from hostwaits import HostData, HostWaits  # tests/core/hostwaits.py: pytest puts this folder on the path
 
-from tests.core.hostwaits import HostData, HostWaits
 from voxfusion.core import tracking_graphs, tracking_sdf
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.framedata import frame_to_device
