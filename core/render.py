@@ -610,7 +610,6 @@ def image_chunk_rays(device: torch.device) -> int:
     return 4096 if device.type == "cpu" else 1 << 16
 
 
-@torch.no_grad()
 def image_rays(out: RenderOutput, with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
     """An image's rays from a render: depth ``[N]`` and colour ``[N, 3]`` (None without, or unless ``with_color``)
     where a surface was found, 0 elsewhere, and that validity ``[N]`` (``surface & hit``)."""
@@ -622,6 +621,7 @@ def image_rays(out: RenderOutput, with_color: bool = True) -> tuple[torch.Tensor
     return depth, valid, color
 
 
+@torch.no_grad()
 def render_depth_image(voxel_map: VoxelMap, field: SDFField | SDFDecoder, K: torch.Tensor | np.ndarray,
                        T_world_cam: torch.Tensor | np.ndarray, width: int, height: int, config: RenderConfig,
                        chunk: int | None = None, with_color: bool = True,
