@@ -4,7 +4,7 @@ An occlusion image (256x192, depth alone) is ~350 operators: on an H100 it took 
 (``bench/results/gpu-nvidia-h100-80gb-hbm3-lease-6.json`` to ``-8.json``), where most operators are cheap and each
 costs a launch and the host's time to issue it, plus two read-backs (the samples per ray, the samples inside the map).
 :class:`OcclusionGraphs` records the whole image once, :func:`~.render.render_rays_static` with fixed sizes
-(:class:`~.render.RenderBudget`, measured on the session's first eager render with some headroom) and no read-back,
+(:class:`~.render.RenderBudget`, measured on the camera's first eager render with some headroom) and no read-back,
 over a static copy of the map snapshot (:class:`~.tracking_graphs.StaticMap`, its bounds included) and a static
 pose; a render then copies the newest snapshot and the pose in, replays, and reads back one flag with the image. Where
 the flag says the budget was short (a ray needed more samples, the rays more field queries, or the walk doubts
@@ -29,7 +29,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from .errors import VoxFusionError
+from .errors import ValidationError, VoxFusionError
 from .field import SDFDecoder
 from .raycast import grid_walk_planes
 from .render import (
@@ -38,6 +38,7 @@ from .render import (
     RenderedImage,
     _as_tensor,
     camera_directions,
+    image_chunk_rays,
     image_rays,
     rays_from_directions,
     render_budget,
@@ -49,11 +50,15 @@ from .voxels import VoxelMap
 
 log = logging.getLogger("voxfusion.render")
 
-__all__ = ["OcclusionGraphs", "MAX_GRAPHS"]
+__all__ = ["OcclusionGraphs", "MAX_GRAPHS", "OOM_BACKOFF_RENDERS"]
 
 MAX_GRAPHS = 2
-"""Recorded images an :class:`OcclusionGraphs` keeps (each with its static copy of the map): a depth-only one and one
-with colour for the session's camera; a third drops them all."""
+"""Recorded images an :class:`OcclusionGraphs` keeps (each with its static copy of the map and a memory pool about the
+eager render's peak): a depth-only one and one with colour for the session's camera; a third drops them all."""
+OOM_BACKOFF_RENDERS = 30
+"""Renders made eagerly after the device ran out of memory while capturing or replaying (then the graphs try again)."""
+_NONZERO_STATIC_WAITS = tuple(int(x) for x in torch.__version__.split(".")[:2]) < (2, 6)
+"""Before PyTorch 2.6 ``torch.nonzero_static`` on CUDA waits for the host, which a capture refuses: no graphs then."""
 
 
 def _pixel_directions(K: np.ndarray | torch.Tensor, width: int, height: int, device: torch.device) -> torch.Tensor:
@@ -112,10 +117,13 @@ class OcclusionGraphs:
         record: how an image is recorded (:data:`~.tracking_graphs.Recorder`); None: CUDA graphs on a stream of this
             object's own, warmed up before each capture. Tests pass :func:`~.tracking_graphs.record_eagerly`.
 
-    :meth:`render` returns None where the eager render must run instead (a map without a dense index grid or too
-    long for the fixed walk; after a failure, for good, logged once: :attr:`failed`). Thread-safe (one render at a
-    time). :attr:`captures` / :attr:`capture_s` count the images recorded and their host seconds, :attr:`replays` and
-    :attr:`fallbacks` the renders replayed and those whose budget was short (benchmarks).
+    :meth:`render` returns None where the eager render must run instead: a map without a dense index grid or too long
+    for the fixed walk; an image of more rays than one eager call renders (:func:`~.render.image_chunk_rays`); for
+    :data:`OOM_BACKOFF_RENDERS` renders after the device ran out of memory (logged); after any other failure, for
+    good (logged once: :attr:`failed`). Bad input (sizes, shapes) raises as the eager render does. Budgets are kept
+    per camera (intrinsics and size). Thread-safe (one render at a time). :attr:`captures` / :attr:`capture_s` count
+    the images recorded and their host seconds, :attr:`replays` and :attr:`fallbacks` the renders replayed and those
+    whose budget was short (benchmarks).
     """
 
     def __init__(self, device: torch.device, record: Recorder | None = None) -> None:
@@ -128,9 +136,13 @@ class OcclusionGraphs:
         self._graphs: dict[tuple, _ImageGraph] = {}
         """At most :data:`MAX_GRAPHS` recorded images, by camera and colour (depth-only requests and colour ones
         alternate without a capture each)."""
-        self._budget: RenderBudget | None = None
+        self._budgets: dict[tuple, RenderBudget] = {}
         self._directions: dict[tuple, torch.Tensor] = {}
-        self.failed = False
+        self._backoff = 0
+        self.failed = torch.device(device).type == "cuda" and record is None and _NONZERO_STATIC_WAITS
+        if self.failed:
+            log.warning("render.cuda_graphs: PyTorch %s cannot capture the render (nonzero_static waits for the host "
+                        "before 2.6); rendering eagerly", torch.__version__)
         self.captures = 0
         self.capture_s = 0.0
         self.replays = 0
@@ -141,14 +153,27 @@ class OcclusionGraphs:
                with_color: bool = True) -> RenderedImage | None:
         """The image :func:`~.render.render_depth_image` renders (``K`` ``[3, 3]`` for ``width`` x ``height``,
         ``T_world_cam`` ``[4, 4]``), from the graph of this map structure, camera and options, or None."""
-        if self.failed:
+        if width < 1 or height < 1:
+            raise ValidationError("width/height", f"must be positive, got {width} x {height}")
+        K_host = _as_tensor(K, "K", (3, 3)).detach().cpu().to(torch.float64)  # checked before any graph work
+        T = _as_tensor(T_world_cam, "T_world_cam", (4, 4), voxels.device).to(torch.float64)
+        if self.failed or width * height > image_chunk_rays(voxels.device):
             return None
         with self._lock:
+            if self._backoff > 0:
+                self._backoff -= 1
+                return None
             try:
-                return self._render(voxels, decoder, K, T_world_cam, width, height, config, with_color)
+                return self._render(voxels, decoder, K_host, T, width, height, config, with_color)
             except VoxFusionError:
                 raise  # bad input, not the graphs' failure
-            except Exception as e:  # noqa: BLE001 - capture or replay refused (out of memory included): stay eager
+            except torch.OutOfMemoryError:  # other sessions or the mapping thread hold the memory now: later
+                self._graphs = {}
+                self._backoff = OOM_BACKOFF_RENDERS
+                log.warning("render.cuda_graphs: out of device memory; rendering eagerly for %d renders",
+                            OOM_BACKOFF_RENDERS)
+                return None
+            except Exception as e:  # noqa: BLE001 - capture or replay refused: stay eager
                 first_line = str(e).splitlines()[0] if str(e) else ""
                 log.warning("render.cuda_graphs: CUDA graph capture or replay failed (%s: %s); rendering eagerly",
                             type(e).__name__, first_line)
@@ -156,23 +181,19 @@ class OcclusionGraphs:
                 self._graphs = {}
                 return None
 
-    def _render(self, voxels: VoxelMap, decoder: SDFDecoder, K: np.ndarray | torch.Tensor,
-                T_world_cam: np.ndarray | torch.Tensor, width: int, height: int, config: RenderConfig,
-                with_color: bool) -> RenderedImage | None:
-        dev = voxels.device
+    def _render(self, voxels: VoxelMap, decoder: SDFDecoder, K: torch.Tensor, T: torch.Tensor, width: int,
+                height: int, config: RenderConfig, with_color: bool) -> RenderedImage | None:
         grid = voxels.index_grid() if voxels.voxel_bounds is not None else None
         planes = None if grid is None else grid_walk_planes(grid)
         if planes is None:  # no dense grid, or a map too long for the fixed walk
             return None
-        T = _as_tensor(T_world_cam, "T_world_cam", (4, 4), dev).to(torch.float64)
-        K_key = tuple(np.asarray(K.detach().cpu() if isinstance(K, torch.Tensor) else K, dtype=np.float64).ravel())
-        camera = (width, height, K_key)
+        camera = (width, height, tuple(K.ravel().tolist()))
         d_cam = self._directions.get(camera)
         if d_cam is None:
             if len(self._directions) >= MAX_GRAPHS:
-                self._directions = {}
-            d_cam = self._directions[camera] = _pixel_directions(K, width, height, dev)
-        budget = self._budget
+                self._directions, self._budgets = {}, {}
+            d_cam = self._directions[camera] = _pixel_directions(K, width, height, voxels.device)
+        budget = self._budgets.get(camera)
         if budget is not None and budget.planes < planes:
             budget = None  # the grid grew: measure again
         if budget is not None:
@@ -180,7 +201,8 @@ class OcclusionGraphs:
             key = (map_signature(voxels, decoder), config, budget)
             graph = self._graphs.get(slot)
             if graph is None or graph.key != key:
-                self._graphs.pop(slot, None)  # the old graph's memory goes back before the new one takes its own
+                self._graphs.pop(slot, None)
+                graph = None  # the old graph's memory goes back before the new one takes its own
                 if len(self._graphs) >= MAX_GRAPHS:
                     self._graphs = {}
                 t0 = time.perf_counter()
@@ -194,15 +216,18 @@ class OcclusionGraphs:
             if not doubt:
                 return _image(depth, valid, color, width, height)
             self.fallbacks += 1
-        # eager: the session's first render, or one the budget fell short of; it sets the budget for the next
+        # eager: the camera's first render, or one its budget fell short of; it sets the budget for the next
         o, d = rays_from_directions(d_cam, T, voxels.embeddings.dtype)
         out = render_rays_fixed(voxels, decoder, o, d, config, with_color)
         if out is None:
             return None
         measured = render_budget(voxels, out)
         if measured is not None:
-            self._budget = measured if self._budget is None else RenderBudget(
-                *(max(a, b) for a, b in zip(dataclasses.astuple(self._budget), dataclasses.astuple(measured),
-                                            strict=True)))
+            old = self._budgets.get(camera)
+            merged = measured if old is None else RenderBudget(
+                *(max(a, b) for a, b in zip(dataclasses.astuple(old), dataclasses.astuple(measured), strict=True)))
+            # no more queries than the image has samples (the budget's padding is evaluated at every replay)
+            self._budgets[camera] = dataclasses.replace(merged, queries=min(merged.queries,
+                                                                            width * height * merged.samples))
         depth, valid, color = image_rays(out, with_color)
         return _image(depth, valid, color, width, height)

@@ -18,6 +18,7 @@ from hostwaits import HostData, HostWaits  # tests/core/hostwaits.py: pytest put
 
 from voxfusion.core import render_graphs
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
+from voxfusion.core.errors import ShapeError, ValidationError
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.geometry import scale_intrinsics
 from voxfusion.core.reconstruct import make_mapper
@@ -170,14 +171,98 @@ def test_a_short_budget_falls_back_to_the_eager_image_and_grows():
     snap = mapper.voxels.snapshot()
     K, T = camera(cap, 4)
     graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
-    measured = graphs._budget
-    graphs._budget = RenderBudget(samples=4, queries=measured.queries, planes=measured.planes)
+    ((key, measured),) = graphs._budgets.items()  # one camera
+    graphs._budgets[key] = RenderBudget(samples=4, queries=measured.queries, planes=measured.planes)
     got = graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
     assert_same_image(got, render_depth_image(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False))
-    assert graphs.fallbacks == 1 and graphs._budget.samples >= measured.samples
+    assert graphs.fallbacks == 1 and graphs._budgets[key].samples >= measured.samples
     again = graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
     assert_same_image(again, got)
     assert graphs.fallbacks == 1 and graphs.replays == 2 and graphs.captures == 2
+
+
+def test_bad_input_raises_as_the_eager_render_does_and_leaves_the_graphs_on():
+    cap, cfg, mapper = room()
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
+    snap, decoder = published(mapper)
+    K, T = camera(cap, 4)
+    for _ in range(2):
+        graphs.render(snap, decoder, K, T, W, H, cfg.render)
+    with pytest.raises(ValidationError, match="width"):
+        graphs.render(snap, decoder, K, T, 0, H, cfg.render)
+    with pytest.raises(ShapeError, match="K"):
+        graphs.render(snap, decoder, K[:2], T, W, H, cfg.render)
+    with pytest.raises(ShapeError, match="T_world_cam"):
+        graphs.render(snap, decoder, K, T[:3], W, H, cfg.render)
+    assert not graphs.failed and graphs.render(snap, decoder, K, T, W, H, cfg.render) is not None
+    # more rays than one eager call renders: left to the chunked eager render
+    big = scale_intrinsics(K, (W, H), (W * 2, H * 2))
+    assert graphs.render(snap, decoder, big, T, W * 2, H * 2, cfg.render) is None and not graphs.failed
+
+
+def test_each_camera_has_its_budget_and_no_more_queries_than_its_samples():
+    cap, cfg, mapper = room()
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
+    snap, decoder = published(mapper)
+    K, T = camera(cap, 4)
+    small = scale_intrinsics(K, (W, H), (16, 12))
+    for _ in range(2):
+        graphs.render(snap, decoder, K, T, W, H, cfg.render)
+        got = graphs.render(snap, decoder, small, T, 16, 12, cfg.render)
+    assert_same_image(got, render_depth_image(snap, decoder, small, T, 16, 12, cfg.render))
+    budgets = {key[:2]: b for key, b in graphs._budgets.items()}
+    assert set(budgets) == {(W, H), (16, 12)}
+    assert budgets[(16, 12)].queries <= 16 * 12 * budgets[(16, 12)].samples < budgets[(W, H)].queries
+
+
+def test_a_new_capture_releases_the_graph_it_replaces_first():
+    import gc
+    import weakref
+
+    cap, cfg, mapper = room()
+    alive = []
+
+    def record(fn):  # noqa: ANN001, ANN202
+        gc.collect()
+        alive.append(sum(ref() is not None for ref in graphs_made))
+        return record_eagerly(fn)
+
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record)
+    graphs_made = []
+    snap, decoder = published(mapper)
+    K, T = camera(cap, 4)
+    for step in range(4):
+        if step == 3:  # a larger budget: the same slot is captured again
+            ((key, b),) = graphs._budgets.items()
+            graphs._budgets[key] = RenderBudget(b.samples + 8, b.queries, b.planes)
+        graphs.render(snap, decoder, K, T, W, H, cfg.render)
+        graphs_made = [weakref.ref(g) for g in graphs._graphs.values()] or graphs_made
+    assert graphs.captures == 2 and alive == [0, 0]
+
+
+def test_running_out_of_memory_renders_eagerly_for_a_while_then_tries_again(caplog):
+    from voxfusion.core.render_graphs import OOM_BACKOFF_RENDERS
+
+    cap, cfg, mapper = room()
+    calls = []
+
+    def record(fn):  # noqa: ANN001, ANN202
+        calls.append(1)
+        if len(calls) == 1:
+            raise torch.OutOfMemoryError("CUDA out of memory")
+        return record_eagerly(fn)
+
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record)
+    snap, decoder = published(mapper)
+    K, T = camera(cap, 4)
+    assert graphs.render(snap, decoder, K, T, W, H, cfg.render) is not None  # eager: sets the budget
+    with caplog.at_level(logging.WARNING, logger="voxfusion.render"):
+        assert graphs.render(snap, decoder, K, T, W, H, cfg.render) is None
+    assert "out of device memory" in caplog.text and not graphs.failed
+    assert all(graphs.render(snap, decoder, K, T, W, H, cfg.render) is None for _ in range(OOM_BACKOFF_RENDERS))
+    assert_same_image(graphs.render(snap, decoder, K, T, W, H, cfg.render),
+                      render_depth_image(snap, decoder, K, T, W, H, cfg.render))
+    assert graphs.captures == 1 and graphs.replays == 1
 
 
 def test_a_failed_capture_leaves_the_renders_eager_after_one_warning(caplog):
@@ -222,7 +307,11 @@ def test_replayed_occlusion_images_are_the_eager_ones_on_cuda(with_color):
         got = slam.render_depth(K, T, W, H, with_color=with_color)
         snap = slam.snapshot
         want = render_depth_image(snap.voxels, snap.decoder, K, T, W, H, cfg.render, with_color=with_color)
-        assert_same_image(got, want)
+        # the decoder runs on the budget's padded batch: its products may round otherwise than the eager ones, so a
+        # ray whose zero crossing sits on a sample may flip; everywhere else the same image
+        both = got.valid & want.valid
+        assert float((got.valid != want.valid).float().mean()) < 2e-3 and bool(both.any())
+        torch.testing.assert_close(got.depth[both], want.depth[both], rtol=0, atol=1e-4)
         slam.process(cap[12 + index])
-    assert not graphs.failed and graphs.replays >= 3 and graphs.captures >= 1
+    assert not graphs.failed and graphs.replays >= 3 and graphs.captures >= 1 and graphs.fallbacks == 0
     assert render_graphs.log.name == "voxfusion.render"
