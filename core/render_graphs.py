@@ -24,7 +24,6 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -45,7 +44,7 @@ from .render import (
     render_rays_fixed,
     render_rays_static,
 )
-from .tracking_graphs import CudaGraphRecorder, Recorder, StaticMap, map_signature
+from .tracking_graphs import Recorder, StaticMap, WarmUp, map_signature, recorder_for
 from .voxels import VoxelMap
 
 log = logging.getLogger("voxfusion.render")
@@ -81,7 +80,7 @@ class _ImageGraph:
 
     def __init__(self, key: tuple, voxels: VoxelMap, decoder: SDFDecoder, d_cam: torch.Tensor, T: torch.Tensor,
                  config: RenderConfig, budget: RenderBudget, with_color: bool, record: Recorder,
-                 warm_up: Callable[[Callable[[], None]], None] | None) -> None:
+                 warm_up: WarmUp | None) -> None:
         self.key = key
         self.map = StaticMap(voxels, decoder)
         self.d_cam = d_cam
@@ -127,11 +126,7 @@ class OcclusionGraphs:
     """
 
     def __init__(self, device: torch.device, record: Recorder | None = None) -> None:
-        self._warm_up: Callable[[Callable[[], None]], None] | None = None
-        if record is None:
-            recorder = CudaGraphRecorder(torch.cuda.Stream(device))
-            record, self._warm_up = recorder, recorder.warm_up
-        self._record = record
+        self._record, self._warm_up = recorder_for(device, record)
         self._lock = threading.Lock()
         self._graphs: dict[tuple, _ImageGraph] = {}
         """At most :data:`MAX_GRAPHS` recorded images, by camera and colour (depth-only requests and colour ones

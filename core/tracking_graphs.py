@@ -56,8 +56,8 @@ from .voxels.index_grid import VoxelIndexGrid
 
 log = logging.getLogger("voxfusion.tracking")
 
-__all__ = ["SolverGraphs", "CudaGraphRecorder", "record_eagerly", "Recorder", "StaticMap", "map_signature",
-           "MAP_TENSORS", "GRID_MAP_TENSORS", "MIN_CAPACITY_ROWS", "OOM_BACKOFF_FRAMES"]
+__all__ = ["SolverGraphs", "CudaGraphRecorder", "record_eagerly", "recorder_for", "Recorder", "WarmUp", "StaticMap",
+           "map_signature", "MAP_TENSORS", "GRID_MAP_TENSORS", "MIN_CAPACITY_ROWS", "OOM_BACKOFF_FRAMES"]
 
 
 def _state_tensors(state: LMState) -> list[torch.Tensor]:
@@ -136,6 +136,19 @@ class CudaGraphRecorder:
         with torch.cuda.stream(self.stream):
             fn()
         current.wait_stream(self.stream)
+
+
+WarmUp = Callable[[Callable[[], None]], None]
+"""Runs a block eagerly where its graphs will be captured (:meth:`CudaGraphRecorder.warm_up`)."""
+
+
+def recorder_for(device: torch.device, record: Recorder | None = None) -> tuple[Recorder, WarmUp | None]:
+    """What records a graph user's blocks: ``record`` as given (tests pass :func:`record_eagerly`), without a warm-up;
+    None: CUDA graphs on a new stream of ``device`` (:class:`CudaGraphRecorder`) and its warm-up."""
+    if record is not None:
+        return record, None
+    recorder = CudaGraphRecorder(torch.cuda.Stream(device))
+    return recorder, recorder.warm_up
 
 
 def record_eagerly(fn: Callable[[], Recorded]) -> tuple[Recorded, Callable[[], None]]:
@@ -262,7 +275,7 @@ class _GraphSet:
 
     def __init__(self, key: tuple, voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints],
                  T_init: torch.Tensor, cfg: SdfSolverConfig, reference: DepthReference | None,
-                 record: Recorder, warm_up: Callable[[Callable[[], None]], None] | None) -> None:
+                 record: Recorder, warm_up: WarmUp | None) -> None:
         self.key = key
         self.map = StaticMap(voxels, decoder)
         self.voxels, self.decoder = self.map.voxels, self.map.decoder  # what the graphs read
@@ -355,11 +368,7 @@ class SolverGraphs:
     """
 
     def __init__(self, device: torch.device, record: Recorder | None = None) -> None:
-        self._warm_up: Callable[[Callable[[], None]], None] | None = None
-        if record is None:
-            recorder = CudaGraphRecorder(torch.cuda.Stream(device))
-            record, self._warm_up = recorder, recorder.warm_up
-        self._record = record
+        self._record, self._warm_up = recorder_for(device, record)
         self._warmed: set[tuple] = set()
         """Input signatures (the key without the map's) whose code paths ran eagerly on the capture stream."""
         self._backoff = 0
