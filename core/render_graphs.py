@@ -132,6 +132,8 @@ class OcclusionGraphs:
         """At most :data:`MAX_GRAPHS` recorded images, by camera and colour (depth-only requests and colour ones
         alternate without a capture each)."""
         self._budgets: dict[tuple, RenderBudget] = {}
+        self._warmed: set[tuple] = set()
+        """Cameras and colour settings whose render ran eagerly on the capture stream before a first capture."""
         self._directions: dict[tuple, torch.Tensor] = {}
         self._backoff = 0
         self.failed = torch.device(device).type == "cuda" and record is None and _NONZERO_STATIC_WAITS
@@ -201,8 +203,9 @@ class OcclusionGraphs:
                 if len(self._graphs) >= MAX_GRAPHS:
                     self._graphs = {}
                 t0 = time.perf_counter()
-                graph = _ImageGraph(key, voxels, decoder, d_cam, T, config, budget, with_color, self._record,
-                                    self._warm_up)
+                warm_up = self._warm_up if slot not in self._warmed else None  # lazy set-ups happen once per stream
+                graph = _ImageGraph(key, voxels, decoder, d_cam, T, config, budget, with_color, self._record, warm_up)
+                self._warmed.add(slot)
                 self._graphs[slot] = graph
                 self.captures += 1
                 self.capture_s += time.perf_counter() - t0

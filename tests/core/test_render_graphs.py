@@ -240,6 +240,22 @@ def test_a_new_capture_releases_the_graph_it_replaces_first():
     assert graphs.captures == 2 and alive == [0, 0]
 
 
+def test_a_camera_is_warmed_up_on_the_capture_stream_before_its_first_capture_only():
+    cap, cfg, mapper = room()
+    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
+    warmed = []
+    graphs._warm_up = lambda fn: warmed.append(fn())  # what CudaGraphRecorder.warm_up does, on the capture stream
+    snap, decoder = published(mapper)
+    K, T = camera(cap, 4)
+    for step in range(4):
+        if step == 2:  # a larger budget: captured again, not warmed up again
+            ((key, b),) = graphs._budgets.items()
+            graphs._budgets[key] = RenderBudget(b.samples + 8, b.queries, b.planes)
+        graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=False)
+    graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=True)  # another slot: warmed up once
+    assert graphs.captures == 3 and len(warmed) == 2
+
+
 def test_running_out_of_memory_renders_eagerly_for_a_while_then_tries_again(caplog):
     from voxfusion.core.render_graphs import OOM_BACKOFF_RENDERS
 
