@@ -13,9 +13,10 @@ itself) that image is rendered eagerly and the budget grows (a new capture at th
 
 The eager :func:`~.render.render_depth_image` is the reference: the replayed image equals it up to float rounding
 (sums over the budget's empty sample columns), which the CPU tests check with :func:`~.tracking_graphs.record_eagerly`
-standing in for the graphs (the same static copies, the same budgets), and the CUDA tests on a GPU. Anything that fails
-while capturing or replaying is logged once at WARNING and the session renders eagerly from then on. Off by default
-until measured on a GPU (``make bench-gpu``'s render section measures both).
+standing in for the graphs (the same static copies, the same budgets), and the CUDA tests on a GPU. A capture or replay
+that runs out of device memory leaves the next renders eager for a while; any other failure is logged once at WARNING
+and the session renders eagerly from then on. Off by default until measured on a GPU (``make bench-gpu``'s render
+section measures both).
 """
 
 from __future__ import annotations
@@ -114,7 +115,8 @@ class OcclusionGraphs:
     Args:
         device: the CUDA device of the maps it will be given.
         record: how an image is recorded (:data:`~.tracking_graphs.Recorder`); None: CUDA graphs on a stream of this
-            object's own, warmed up before each capture. Tests pass :func:`~.tracking_graphs.record_eagerly`.
+            object's own, each camera's render warmed up there before its first capture. Tests pass
+            :func:`~.tracking_graphs.record_eagerly`.
 
     :meth:`render` returns None where the eager render must run instead: a map without a dense index grid or too long
     for the fixed walk; an image of more rays than one eager call renders (:func:`~.render.image_chunk_rays`); for
