@@ -24,6 +24,9 @@ first 10 frames with the ``cpu`` sizes; then:
   data-dependent shapes and with the fixed-shape walk (:func:`~voxfusion.core.render.render_rays_fixed`, a GPU's
   default); "per iteration" is per image there. Each row also reads one small tensor back with ``.tolist()`` (the
   chunk sizes; the sample count with the walk's doubt flag), which runs no operator on a CPU and is not counted;
+  ``... static budget (one CUDA graph)``: the same image as :func:`~voxfusion.core.render.render_rays_static`, the body
+  of its CUDA graph (``render.cuda_graphs``), with budgets measured on a fixed-walk render: no read-back; its one
+  ``nonzero_static`` (which waits for nothing on CUDA from PyTorch 2.6) counted apart;
 * ``fuse/7 frames in turn`` and ``... in one pass``: a realtime mapping round's fusion of the 7 frames tracked
   since the last round (what an H100 session fed at 30 Hz fused per round), with ``Mapper.integrate`` per frame and
   with ``Mapper.integrate_batch`` (one allocation, surface-mark and evidence update); "per iteration" is per round
@@ -196,6 +199,15 @@ def main(argv: list[str] | None = None) -> int:
                                                                   192, cfg.render, **kw), args.repeats)
             rows[name] = {"aten_ops_per_iteration": c["aten_ops"], "host_syncs_per_iteration": c["host_syncs"],
                           "sync_ops_per_iteration": c["sync_ops"]}
+        if hasattr(render, "render_rays_static"):  # the body of the occlusion render's CUDA graph (render_graphs)
+            o, d = render.camera_rays(K, cap[10].T_world_cam, width=256, height=192)
+            sized = render.render_budget(snap, render.render_rays_fixed(snap, mapper.decoder, o, d, cfg.render))
+            c = count_ops(lambda: render.render_rays_static(snap, mapper.decoder, o, d, cfg.render, sized, False),
+                          args.repeats)
+            static = c["sync_ops"].pop("aten::nonzero_static", 0.0)  # waits for nothing on CUDA (PyTorch >= 2.6)
+            rows["render/occlusion 256x192 static budget (one CUDA graph)"] = {
+                "aten_ops_per_iteration": c["aten_ops"], "host_syncs_per_iteration": c["host_syncs"] - static,
+                "sync_ops_per_iteration": c["sync_ops"], "nonzero_static_per_iteration": static}
     finally:
         raycast._event_budget = budget
 
