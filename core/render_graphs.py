@@ -23,11 +23,14 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import operator
 import threading
 import time
+from collections import OrderedDict
 
 import numpy as np
 import torch
+from torch.torch_version import TorchVersion
 
 from .errors import ValidationError, VoxFusionError
 from .field import SDFDecoder
@@ -50,14 +53,18 @@ from .voxels import VoxelMap
 
 log = logging.getLogger("voxfusion.render")
 
-__all__ = ["OcclusionGraphs", "MAX_GRAPHS", "OOM_BACKOFF_RENDERS"]
+__all__ = ["OcclusionGraphs", "MAX_GRAPHS", "MAX_CAMERAS", "OOM_BACKOFF_RENDERS"]
 
 MAX_GRAPHS = 2
 """Recorded images an :class:`OcclusionGraphs` keeps (each with its static copy of the map and a memory pool about the
-eager render's peak): a depth-only one and one with colour for the session's camera; a third drops them all."""
+eager render's peak), the least recently used dropped first: a depth-only one and one with colour for the session's
+camera."""
+MAX_CAMERAS = 4
+"""Cameras (intrinsics and size) whose ray directions and budget an :class:`OcclusionGraphs` keeps, least recently used
+dropped first (with its graphs)."""
 OOM_BACKOFF_RENDERS = 30
 """Renders made eagerly after the device ran out of memory while capturing or replaying (then the graphs try again)."""
-_NONZERO_STATIC_WAITS = tuple(int(x) for x in torch.__version__.split(".")[:2]) < (2, 6)
+_NONZERO_STATIC_WAITS = TorchVersion(torch.__version__) < (2, 6)
 """Before PyTorch 2.6 ``torch.nonzero_static`` on CUDA waits for the host, which a capture refuses: no graphs then."""
 
 
@@ -74,6 +81,21 @@ def _image(depth: torch.Tensor, valid: torch.Tensor, color: torch.Tensor | None,
     """The flat ``[H W]`` outputs as a :class:`~.render.RenderedImage` of fresh tensors (a replay overwrites them)."""
     return RenderedImage(depth.reshape(height, width).clone(), None if color is None
                          else color.reshape(height, width, 3).clone(), valid.reshape(height, width).clone())
+
+
+@dataclasses.dataclass
+class _Camera:
+    """A camera's ray directions ``[H W, 3]`` (camera frame, on the map's device) and budget (None: not measured)."""
+
+    directions: torch.Tensor
+    budget: RenderBudget | None = None
+
+
+def _transient(e: Exception) -> bool:
+    """Whether a capture or replay failure is the device being short of memory for now (torch's out-of-memory error,
+    or a library's allocation failing), not something that will fail again."""
+    text = str(e)
+    return isinstance(e, torch.OutOfMemoryError) or "out of memory" in text or "ALLOC_FAILED" in text
 
 
 class _ImageGraph:
@@ -130,13 +152,13 @@ class OcclusionGraphs:
     def __init__(self, device: torch.device, record: Recorder | None = None) -> None:
         self._record, self._warm_up = recorder_for(device, record)
         self._lock = threading.Lock()
-        self._graphs: dict[tuple, _ImageGraph] = {}
-        """At most :data:`MAX_GRAPHS` recorded images, by camera and colour (depth-only requests and colour ones
-        alternate without a capture each)."""
-        self._budgets: dict[tuple, RenderBudget] = {}
+        self._graphs: OrderedDict[tuple, _ImageGraph] = OrderedDict()
+        """At most :data:`MAX_GRAPHS` recorded images by camera and colour, least recently used first (depth-only
+        requests and colour ones alternate without a capture each)."""
+        self._cameras: OrderedDict[tuple, _Camera] = OrderedDict()
+        """At most :data:`MAX_CAMERAS`, least recently used first."""
         self._warmed: set[tuple] = set()
         """Cameras and colour settings whose render ran eagerly on the capture stream before a first capture."""
-        self._directions: dict[tuple, torch.Tensor] = {}
         self._backoff = 0
         self.failed = torch.device(device).type == "cuda" and record is None and _NONZERO_STATIC_WAITS
         if self.failed:
@@ -152,6 +174,10 @@ class OcclusionGraphs:
                with_color: bool = True) -> RenderedImage | None:
         """The image :func:`~.render.render_depth_image` renders (``K`` ``[3, 3]`` for ``width`` x ``height``,
         ``T_world_cam`` ``[4, 4]``), from the graph of this map structure, camera and options, or None."""
+        try:
+            width, height = operator.index(width), operator.index(height)
+        except TypeError as e:
+            raise ValidationError("width/height", f"must be integers, got {width!r} x {height!r}") from e
         if width < 1 or height < 1:
             raise ValidationError("width/height", f"must be positive, got {width} x {height}")
         K_host = _as_tensor(K, "K", (3, 3)).detach().cpu().to(torch.float64)  # checked before any graph work
@@ -166,18 +192,17 @@ class OcclusionGraphs:
                 return self._render(voxels, decoder, K_host, T, width, height, config, with_color)
             except VoxFusionError:
                 raise  # bad input, not the graphs' failure
-            except torch.OutOfMemoryError:  # other sessions or the mapping thread hold the memory now: later
-                self._graphs = {}
-                self._backoff = OOM_BACKOFF_RENDERS
-                log.warning("render.cuda_graphs: out of device memory; rendering eagerly for %d renders",
-                            OOM_BACKOFF_RENDERS)
-                return None
-            except Exception as e:  # noqa: BLE001 - capture or replay refused: stay eager
+            except Exception as e:  # noqa: BLE001 - capture or replay refused: eager for a while, or for good
+                self._graphs.clear()
                 first_line = str(e).splitlines()[0] if str(e) else ""
-                log.warning("render.cuda_graphs: CUDA graph capture or replay failed (%s: %s); rendering eagerly",
-                            type(e).__name__, first_line)
-                self.failed = True
-                self._graphs = {}
+                if _transient(e):  # other sessions or the mapping thread hold the memory now: later
+                    self._backoff = OOM_BACKOFF_RENDERS
+                    log.warning("render.cuda_graphs: out of device memory (%s); rendering eagerly for %d renders",
+                                first_line, OOM_BACKOFF_RENDERS)
+                else:
+                    self.failed = True
+                    log.warning("render.cuda_graphs: CUDA graph capture or replay failed (%s: %s); rendering "
+                                "eagerly", type(e).__name__, first_line)
                 return None
 
     def _render(self, voxels: VoxelMap, decoder: SDFDecoder, K: torch.Tensor, T: torch.Tensor, width: int,
@@ -187,12 +212,8 @@ class OcclusionGraphs:
         if planes is None:  # no dense grid, or a map too long for the fixed walk
             return None
         camera = (width, height, tuple(K.ravel().tolist()))
-        d_cam = self._directions.get(camera)
-        if d_cam is None:
-            if len(self._directions) >= MAX_GRAPHS:
-                self._directions, self._budgets = {}, {}
-            d_cam = self._directions[camera] = _pixel_directions(K, width, height, voxels.device)
-        budget = self._budgets.get(camera)
+        cam = self._camera(camera, K, voxels.device)
+        budget = cam.budget
         if budget is not None and budget.planes < planes:
             budget = None  # the grid grew: measure again
         if budget is not None:
@@ -202,32 +223,47 @@ class OcclusionGraphs:
             if graph is None or graph.key != key:
                 self._graphs.pop(slot, None)
                 graph = None  # the old graph's memory goes back before the new one takes its own
-                if len(self._graphs) >= MAX_GRAPHS:
-                    self._graphs = {}
+                while len(self._graphs) >= MAX_GRAPHS:
+                    self._graphs.popitem(last=False)
                 t0 = time.perf_counter()
                 warm_up = self._warm_up if slot not in self._warmed else None  # lazy set-ups happen once per stream
-                graph = _ImageGraph(key, voxels, decoder, d_cam, T, config, budget, with_color, self._record, warm_up)
+                graph = _ImageGraph(key, voxels, decoder, cam.directions, T, config, budget, with_color,
+                                    self._record, warm_up)
                 self._warmed.add(slot)
                 self._graphs[slot] = graph
                 self.captures += 1
                 self.capture_s += time.perf_counter() - t0
+            self._graphs.move_to_end(slot)
             depth, valid, color, doubt = graph.render(voxels, decoder, T)
             self.replays += 1
             if not doubt:
                 return _image(depth, valid, color, width, height)
             self.fallbacks += 1
         # eager: the camera's first render, or one its budget fell short of; it sets the budget for the next
-        o, d = rays_from_directions(d_cam, T, voxels.embeddings.dtype)
+        o, d = rays_from_directions(cam.directions, T, voxels.embeddings.dtype)
         out = render_rays_fixed(voxels, decoder, o, d, config, with_color)
         if out is None:
             return None
         measured = render_budget(voxels, out)
         if measured is not None:
-            old = self._budgets.get(camera)
-            merged = measured if old is None else RenderBudget(
-                *(max(a, b) for a, b in zip(dataclasses.astuple(old), dataclasses.astuple(measured), strict=True)))
+            merged = measured if cam.budget is None else RenderBudget(
+                *(max(a, b) for a, b in zip(dataclasses.astuple(cam.budget), dataclasses.astuple(measured),
+                                            strict=True)))
             # no more queries than the image has samples (the budget's padding is evaluated at every replay)
-            self._budgets[camera] = dataclasses.replace(merged, queries=min(merged.queries,
-                                                                            width * height * merged.samples))
+            cam.budget = dataclasses.replace(merged, queries=min(merged.queries, width * height * merged.samples))
         depth, valid, color = image_rays(out, with_color)
         return _image(depth, valid, color, width, height)
+
+    def _camera(self, camera: tuple, K: torch.Tensor, device: torch.device) -> _Camera:
+        """The :class:`_Camera` of ``camera`` (``(width, height, K's values)``), made on first use; the least recently
+        used beyond :data:`MAX_CAMERAS` is dropped with its graphs."""
+        cam = self._cameras.get(camera)
+        if cam is None:
+            cam = self._cameras[camera] = _Camera(_pixel_directions(K, camera[0], camera[1], device))
+            while len(self._cameras) > MAX_CAMERAS:
+                gone, _ = self._cameras.popitem(last=False)
+                for slot in [s for s in self._graphs if s[0] == gone]:
+                    del self._graphs[slot]
+                self._warmed = {s for s in self._warmed if s[0] != gone}
+        self._cameras.move_to_end(camera)
+        return cam
