@@ -9,14 +9,15 @@ eager one, through :meth:`SlamSystem.render_depth`.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+from typing import NamedTuple
 
 import numpy as np
 import pytest
 import torch
 from hostwaits import HostData, HostWaits  # tests/core/hostwaits.py: pytest puts this folder on the path
 
-from voxfusion.core import render_graphs
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import ShapeError, ValidationError
 from voxfusion.core.framedata import frame_to_device
@@ -58,6 +59,23 @@ def published(mapper):
 def camera(cap, index: int) -> tuple[np.ndarray, np.ndarray]:
     f = cap[index]
     return scale_intrinsics(f.K, (f.width, f.height), (W, H)), f.T_world_cam
+
+
+class Scene(NamedTuple):
+    cfg: object
+    graphs: OcclusionGraphs
+    snap: object
+    decoder: object
+    K: np.ndarray
+    T: np.ndarray
+
+
+def scene(record=record_eagerly) -> Scene:  # noqa: ANN001
+    """The room's map as a session publishes it, :class:`OcclusionGraphs` over it on the CPU (``record``: how they
+    record; :func:`record_eagerly` stands in for CUDA graphs) and frame 4's camera."""
+    cap, cfg, mapper = room()
+    snap, decoder = published(mapper)
+    return Scene(cfg, OcclusionGraphs(torch.device("cpu"), record=record), snap, decoder, *camera(cap, 4))
 
 
 def assert_same_image(got, want) -> None:
@@ -155,10 +173,7 @@ def test_a_snapshot_whose_bounds_grew_inside_the_grid_is_replayed_with_its_own_b
 
 
 def test_depth_and_colour_requests_keep_a_graph_each():
-    cap, cfg, mapper = room()
-    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
-    snap, decoder = published(mapper)
-    K, T = camera(cap, 4)
+    cfg, graphs, snap, decoder, K, T = scene()
     for with_color in (False, False, True, False, True):
         got = graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=with_color)
         assert_same_image(got, render_depth_image(snap, decoder, K, T, W, H, cfg.render, with_color=with_color))
@@ -166,27 +181,21 @@ def test_depth_and_colour_requests_keep_a_graph_each():
 
 
 def test_a_short_budget_falls_back_to_the_eager_image_and_grows():
-    cap, cfg, mapper = room()
-    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
-    snap = mapper.voxels.snapshot()
-    K, T = camera(cap, 4)
-    graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
+    cfg, graphs, snap, decoder, K, T = scene()
+    graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=False)
     (cam,) = graphs._cameras.values()  # one camera
     measured = cam.budget
-    cam.budget = RenderBudget(samples=4, queries=measured.queries, planes=measured.planes)
-    got = graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
-    assert_same_image(got, render_depth_image(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False))
+    cam.budget = dataclasses.replace(measured, samples=4)
+    got = graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=False)
+    assert_same_image(got, render_depth_image(snap, decoder, K, T, W, H, cfg.render, with_color=False))
     assert graphs.fallbacks == 1 and cam.budget.samples >= measured.samples
-    again = graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render, with_color=False)
+    again = graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=False)
     assert_same_image(again, got)
     assert graphs.fallbacks == 1 and graphs.replays == 2 and graphs.captures == 2
 
 
 def test_bad_input_raises_as_the_eager_render_does_and_leaves_the_graphs_on():
-    cap, cfg, mapper = room()
-    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
-    snap, decoder = published(mapper)
-    K, T = camera(cap, 4)
+    cfg, graphs, snap, decoder, K, T = scene()
     for _ in range(2):
         graphs.render(snap, decoder, K, T, W, H, cfg.render)
     with pytest.raises(ValidationError, match="width"):
@@ -205,10 +214,7 @@ def test_bad_input_raises_as_the_eager_render_does_and_leaves_the_graphs_on():
 
 
 def test_each_camera_has_its_budget_and_no_more_queries_than_its_samples():
-    cap, cfg, mapper = room()
-    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
-    snap, decoder = published(mapper)
-    K, T = camera(cap, 4)
+    cfg, graphs, snap, decoder, K, T = scene()
     small = scale_intrinsics(K, (W, H), (16, 12))
     for _ in range(2):
         graphs.render(snap, decoder, K, T, W, H, cfg.render)
@@ -227,10 +233,7 @@ def test_each_camera_has_its_budget_and_no_more_queries_than_its_samples():
 def test_graphs_and_cameras_are_dropped_least_recently_used_first():
     from voxfusion.core.render_graphs import MAX_CAMERAS, MAX_GRAPHS
 
-    cap, cfg, mapper = room()
-    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
-    snap, decoder = published(mapper)
-    K, T = camera(cap, 4)
+    cfg, graphs, snap, decoder, K, T = scene()
     other = scale_intrinsics(K, (W, H), (32, 24))
 
     def both(with_color: bool) -> None:
@@ -265,7 +268,6 @@ def test_a_new_capture_releases_the_graph_it_replaces_first():
     import gc
     import weakref
 
-    cap, cfg, mapper = room()
     alive = []
 
     def record(fn):  # noqa: ANN001, ANN202
@@ -273,30 +275,25 @@ def test_a_new_capture_releases_the_graph_it_replaces_first():
         alive.append(sum(ref() is not None for ref in graphs_made))
         return record_eagerly(fn)
 
-    graphs = OcclusionGraphs(torch.device("cpu"), record=record)
+    cfg, graphs, snap, decoder, K, T = scene(record)
     graphs_made = []
-    snap, decoder = published(mapper)
-    K, T = camera(cap, 4)
     for step in range(4):
         if step == 3:  # a larger budget: the same slot is captured again
             (cam,) = graphs._cameras.values()
-            cam.budget = RenderBudget(cam.budget.samples + 8, cam.budget.queries, cam.budget.planes)
+            cam.budget = dataclasses.replace(cam.budget, samples=cam.budget.samples + 8)
         graphs.render(snap, decoder, K, T, W, H, cfg.render)
         graphs_made = [weakref.ref(g) for g in graphs._graphs.values()] or graphs_made
     assert graphs.captures == 2 and alive == [0, 0]
 
 
 def test_a_camera_is_warmed_up_on_the_capture_stream_before_its_first_capture_only():
-    cap, cfg, mapper = room()
-    graphs = OcclusionGraphs(torch.device("cpu"), record=record_eagerly)
+    cfg, graphs, snap, decoder, K, T = scene()
     warmed = []
     graphs._warm_up = lambda fn: warmed.append(fn())  # what CudaGraphRecorder.warm_up does, on the capture stream
-    snap, decoder = published(mapper)
-    K, T = camera(cap, 4)
     for step in range(4):
         if step == 2:  # a larger budget: captured again, not warmed up again
             (cam,) = graphs._cameras.values()
-            cam.budget = RenderBudget(cam.budget.samples + 8, cam.budget.queries, cam.budget.planes)
+            cam.budget = dataclasses.replace(cam.budget, samples=cam.budget.samples + 8)
         graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=False)
     graphs.render(snap, decoder, K, T, W, H, cfg.render, with_color=True)  # another slot: warmed up once
     assert graphs.captures == 3 and len(warmed) == 2
@@ -307,7 +304,6 @@ def test_a_camera_is_warmed_up_on_the_capture_stream_before_its_first_capture_on
 def test_running_out_of_memory_renders_eagerly_for_a_while_then_tries_again(caplog, error):
     from voxfusion.core.render_graphs import OOM_BACKOFF_RENDERS
 
-    cap, cfg, mapper = room()
     calls = []
 
     def record(fn):  # noqa: ANN001, ANN202
@@ -316,9 +312,7 @@ def test_running_out_of_memory_renders_eagerly_for_a_while_then_tries_again(capl
             raise error
         return record_eagerly(fn)
 
-    graphs = OcclusionGraphs(torch.device("cpu"), record=record)
-    snap, decoder = published(mapper)
-    K, T = camera(cap, 4)
+    cfg, graphs, snap, decoder, K, T = scene(record)
     assert graphs.render(snap, decoder, K, T, W, H, cfg.render) is not None  # eager: sets the budget
     with caplog.at_level(logging.WARNING, logger="voxfusion.render"):
         assert graphs.render(snap, decoder, K, T, W, H, cfg.render) is None
@@ -330,18 +324,14 @@ def test_running_out_of_memory_renders_eagerly_for_a_while_then_tries_again(capl
 
 
 def test_a_failed_capture_leaves_the_renders_eager_after_one_warning(caplog):
-    cap, cfg, mapper = room()
-
     def refuse(fn):  # noqa: ANN001, ANN202
         raise RuntimeError("operation not permitted when stream is capturing")
 
-    graphs = OcclusionGraphs(torch.device("cpu"), record=refuse)
-    snap = mapper.voxels.snapshot()
-    K, T = camera(cap, 4)
-    assert graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render) is not None  # eager: sets the budget
+    cfg, graphs, snap, decoder, K, T = scene(refuse)
+    assert graphs.render(snap, decoder, K, T, W, H, cfg.render) is not None  # eager: sets the budget
     with caplog.at_level(logging.WARNING, logger="voxfusion.render"):
-        assert graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render) is None
-        assert graphs.render(snap, mapper.decoder, K, T, W, H, cfg.render) is None
+        assert graphs.render(snap, decoder, K, T, W, H, cfg.render) is None
+        assert graphs.render(snap, decoder, K, T, W, H, cfg.render) is None
     assert graphs.failed and sum("render.cuda_graphs" in r.getMessage() for r in caplog.records) == 1
 
 
@@ -378,4 +368,3 @@ def test_replayed_occlusion_images_are_the_eager_ones_on_cuda(with_color):
         torch.testing.assert_close(got.depth[both], want.depth[both], rtol=0, atol=1e-4)
         slam.process(cap[12 + index])
     assert not graphs.failed and graphs.replays >= 3 and graphs.captures >= 1 and graphs.fallbacks == 0
-    assert render_graphs.log.name == "voxfusion.render"
