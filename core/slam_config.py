@@ -50,6 +50,7 @@ __all__ = [
     "PRESET_ALIASES",
     "UNREGISTERED_COLOR_WEIGHT",
     "GPU_SIZES_ON_CPU_FPS",
+    "PAPER_SIZES_ON_CPU_FPS",
     "CPU_SIZES_ON_CPU_FPS",
     "PREVIEW_LATTICE_M",
     "PresetChoice",
@@ -81,16 +82,19 @@ PREVIEW_LATTICE_M = 0.025
 UNREGISTERED_COLOR_WEIGHT = 0.1
 """``loss.w_color`` for captures whose colour is not registered to depth (7-Scenes: 0.5 blurs geometry)."""
 
-# Speeds that size_warning quotes, (low, high) frames/s: `voxfusion run ../shared/data/tum_fr1_desk_9frames`
-# (TUM 640x480) on the project's 2-core CPU (AMD EPYC, shared with other jobs, so a range), measured
-# 2026-11-23. Re-measure when the CPU numbers in configs/cpu.yaml or the engine's speed change.
-GPU_SIZES_ON_CPU_FPS = (0.02, 0.04)
-"""``--config tum`` (GPU sizes) on the 2-core CPU: 0.021 frames/s over 3 frames (the first, 100 mapping
-iterations, took 81 s; later frames 15-45 s: 30 tracking iterations at 0.4 s, 10 mapping iterations at 0.9 s)."""
-CPU_SIZES_ON_CPU_FPS = (0.06, 0.25)
-"""``--config tum+cpu`` on the same CPU: 0.061 and 0.095 frames/s over 9 frames with the machine busy (load
-average 4-8 on 2 cores), 0.24 in the earlier benchmark on a quieter machine
-(bench/results/tum_fr1_desk_9f_cpu-small.json)."""
+# Speeds that size_warning quotes, measured on the project's 2-core CPU (AMD EPYC, 2026-11-28, `voxfusion run
+# CAPTURE --config PRESET --out DIR`, frames/s of processing as metrics.json's timings give it). Re-measure when the
+# sizes in configs/ or the engine's speed change.
+GPU_SIZES_ON_CPU_FPS = (0.8, 1.1)
+"""GPU sizes of the kind presets and the built-ins on the 2-core CPU: ``--config tum`` on TUM fr1 desk (9 frames)
+0.88 frames/s (the first frame's 100 mapping iterations at ~51 ms: ~5 s), ``--config sevenscenes`` on 7-Scenes
+(20 frames) 1.09, ``--config synthetic`` on the 320x240 synthetic room (20 frames) 0.98."""
+PAPER_SIZES_ON_CPU_FPS = (0.05, 0.07)
+"""The ``paper`` preset's sizes (4096 mapping rays, decoder width 256) on the same CPU: 0.06 frames/s on the
+synthetic room (20 frames; a mapping iteration ~0.8 s, the first frame's 200 of them ~2.5 min)."""
+CPU_SIZES_ON_CPU_FPS = (7, 20)
+"""CPU sizes (``KIND+cpu``, what ``voxfusion run`` picks without CUDA) on the same CPU: TUM fr1 desk 7-9 frames/s,
+7-Scenes 9-10, the synthetic room 11-13, the Stray iPhone capture ~20 (the README's table)."""
 
 
 @dataclass(frozen=True)
@@ -303,12 +307,14 @@ class PresetChoice:
     """One line for people: what was picked and why (kind, facts, device)."""
 
 
-def preset_for(capture: Capture, device: str = "auto", overrides: list[str] | None = None) -> PresetChoice:
+def preset_for(capture: Capture, device: str = "auto", overrides: list[str] | None = None,
+               cpu_why: str | None = None) -> PresetChoice:
     """Pick the preset for ``capture`` on ``device`` and load it with the capture's facts.
 
     The capture's kind (``capture.profile.kind``) names the kind preset (:data:`KIND_PRESETS`); with no CUDA
     device (``device`` ``auto`` without a GPU, or ``cpu``) it is composed with :data:`CPU_PRESET`. The
-    profile's facts lie under the presets, ``overrides`` on top.
+    profile's facts lie under the presets, ``overrides`` on top. ``cpu_why``: why the sizes are the CPU's, for
+    the reason (default: "CPU requested" or "no CUDA device").
 
     Raises:
         ConfigError: ``device`` is ``cuda`` and no CUDA device is available, or a bad override.
@@ -325,7 +331,7 @@ def preset_for(capture: Capture, device: str = "auto", overrides: list[str] | No
         name, size_why = kind_preset, "a CUDA device is present: GPU sizes"
     else:
         name = CPU_PRESET if kind_preset == "default" else f"{kind_preset}+{CPU_PRESET}"
-        size_why = ("CPU requested" if device.startswith("cpu") else "no CUDA device") + \
+        size_why = (cpu_why or ("CPU requested" if device.startswith("cpu") else "no CUDA device")) + \
             f": CPU sizes ({CPU_PRESET}.yaml)"
     config = load_preset(name, overrides, profile=profile)
     what = profile.sensor or "a capture of unknown kind"
@@ -353,7 +359,10 @@ def size_warning(config: VoxFusionConfig, preset: str | Path | None = None) -> s
     if config.device == "auto" and torch.cuda.is_available():
         return None
     what = f"preset {str(preset)!r}" if preset is not None else "the built-in configuration"
-    slow, fast = (f"{lo:g}-{hi:g}" for lo, hi in (GPU_SIZES_ON_CPU_FPS, CPU_SIZES_ON_CPU_FPS))
-    return (f"warning: {what} is sized for a GPU but runs on the CPU: expect about {slow} frames/s (TUM 640x480 "
-            f"on a 2-core CPU; the first frame alone over a minute). Use --config {_cpu_variant(preset)} for CPU "
+    paper = preset is not None and "paper" in _preset_parts(preset)
+    slow, fast = (f"{lo:g}-{hi:g}" for lo, hi in (PAPER_SIZES_ON_CPU_FPS if paper else GPU_SIZES_ON_CPU_FPS,
+                                                  CPU_SIZES_ON_CPU_FPS))
+    first = "about 2.5 min" if paper else "about 5 s"
+    return (f"warning: {what} is sized for a GPU but runs on the CPU: expect about {slow} frames/s (measured on a "
+            f"2-core CPU; the first frame alone {first}). Use --config {_cpu_variant(preset)} for CPU "
             f"sizes (about {fast} frames/s there), or leave out --config to let voxfusion choose.")

@@ -52,7 +52,12 @@ def read_tum_trajectory(path: str | Path) -> Trajectory:
     if not path.is_file():
         raise CaptureFormatError(path, "trajectory file not found")
     rows: list[list[float]] = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise CaptureFormatError(path, "not a text file: expected a TUM trajectory (lines 'timestamp tx ty tz qx qy "
+                                       "qz qw')") from None
+    for lineno, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

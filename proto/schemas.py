@@ -97,9 +97,9 @@ class SessionCreate(_Model):
 
     name: str | None = Field(None, min_length=1, max_length=128)
     """Human-readable label (not unique, not an id)."""
-    preset: str | None = Field(None, pattern=r"^[a-z0-9][a-z0-9_-]{0,63}$")
-    """Named configuration preset (``configs/<preset>.yaml``, e.g. ``iphone``, ``tum``); ``None``: the
-    server's default. A name only, never a path."""
+    preset: str | None = Field(None, pattern=r"^[a-z0-9][a-z0-9_-]{0,63}(\+[a-z0-9][a-z0-9_-]{0,63}){0,3}$")
+    """Named configuration preset (``configs/<preset>.yaml``, e.g. ``iphone``, ``tum``), or names composed with
+    ``+``, kind first (``tum+cpu``: TUM at CPU sizes); ``None``: the server's default. Names only, never a path."""
     config: dict[str, Any] | None = None
     """Overrides of the engine configuration as a nested object, e.g. ``{"mapping": {"iters": 10},
     "voxel_size_m": 0.1}``; keys are checked by the server (an unknown key is an error naming it)."""

@@ -190,6 +190,21 @@ def _pydantic_field(loc: tuple) -> str | None:
     return ".".join(parts) or None
 
 
+def request_error_detail(error: dict) -> tuple[str, str | None]:
+    """``(detail, field)`` of one pydantic request error (``RequestValidationError.errors()[i]``): the field's
+    dotted path and its message, without pydantic's "Value error, " prefix or the field named twice; a body that is
+    not JSON at all is said so (its location is a character offset, not a field)."""
+    loc, msg = tuple(error.get("loc", ())), str(error.get("msg", "invalid request"))
+    if error.get("type") == "json_invalid":
+        at = f" at character {loc[-1]}" if loc and isinstance(loc[-1], int) else ""
+        return f"the request body is not valid JSON{at}: {error.get('ctx', {}).get('error', msg)}", None
+    field = _pydantic_field(loc)
+    msg = msg.removeprefix("Value error, ")
+    if field:
+        msg = msg.removeprefix(f"{field}: ")
+    return (f"{field}: {msg}" if field else msg), field
+
+
 def install_exception_handlers(app: FastAPI) -> None:
     """Register the handlers that turn domain errors into ``ErrorOut`` JSON answers."""
 
@@ -205,8 +220,7 @@ def install_exception_handlers(app: FastAPI) -> None:
     async def _request_validation(_: Request, exc: RequestValidationError) -> JSONResponse:
         errors = exc.errors()
         first = errors[0] if errors else {"loc": (), "msg": "invalid request"}
-        field = _pydantic_field(tuple(first.get("loc", ())))
-        detail = f"{field}: {first.get('msg')}" if field else str(first.get("msg"))
+        detail, field = request_error_detail(first)
         return JSONResponse(_body(detail, field), status_code=422)
 
     @app.exception_handler(StarletteHTTPException)

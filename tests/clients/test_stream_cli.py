@@ -221,4 +221,6 @@ def test_a_cuda_servers_preset_is_the_kind_alone(monkeypatch):
     cap = SyntheticCapture(SyntheticConfig(n_frames=2, width=32, height=24))
     choice = session_preset(cap, "cuda", None)
     assert choice.name == "synthetic" and choice.reason.endswith("the server has a CUDA device: GPU sizes")
-    assert session_preset(cap, "cpu", None).name == "synthetic+cpu"
+    on_cpu = session_preset(cap, "cpu", None)
+    assert on_cpu.name == "synthetic+cpu" and "the server has no CUDA device: CPU sizes" in on_cpu.reason
+    assert "requested" not in on_cpu.reason  # nobody asked for the CPU: the server has no GPU

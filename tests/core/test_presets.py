@@ -17,6 +17,7 @@ from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig,
 from voxfusion.core.errors import ConfigError
 from voxfusion.core.slam_config import (
     GPU_SIZES_ON_CPU_FPS,
+    PAPER_SIZES_ON_CPU_FPS,
     UNREGISTERED_COLOR_WEIGHT,
     check_preset_name,
     load_preset,
@@ -176,7 +177,8 @@ def test_gpu_sizes_on_cpu_warn_with_speed_and_the_cpu_variant(no_cuda):
     text = size_warning(load_preset("tum"), "tum")
     lo, hi = GPU_SIZES_ON_CPU_FPS
     assert text is not None and "--config tum+cpu" in text and f"about {lo:g}-{hi:g} frames/s" in text
-    assert "--config replica+cpu" in size_warning(load_preset("replica+paper"), "replica+paper")
+    paper = size_warning(load_preset("replica+paper"), "replica+paper")
+    assert "--config replica+cpu" in paper and "about {:g}-{:g} frames/s".format(*PAPER_SIZES_ON_CPU_FPS) in paper
     assert "--config cpu " in size_warning(load_preset("paper"), "paper")
     assert "--config cpu " in size_warning(load_preset(None))
     assert size_warning(load_preset("tum+cpu"), "tum+cpu") is None
@@ -223,3 +225,12 @@ def test_shipped_kind_presets_change_only_what_their_kind_needs():
     base = config_to_dict(load_preset(None))
     for name in ("tum", "sevenscenes"):  # everything they need comes from the reader's profile
         assert config_to_dict(load_preset(name)) == base
+
+
+def test_the_summary_says_why_a_depth_disagreement_is_missing():
+    from voxfusion.commands.run import consistency_row
+
+    row = consistency_row("estimate", {"gap_15_cm": 2.279, "gap_60_cm": float("nan"), "gap_240_cm": None})
+    assert row["metric"] == "depth disagreement [cm] (estimate poses)"
+    assert row["value"].startswith("2.28 / n/a / n/a  at frame gaps 15 / 60 / 240  (n/a: no frame pair")
+    assert "n/a" not in consistency_row("estimate", {"gap_15_cm": 0.5})["value"]

@@ -208,11 +208,24 @@ def test_bad_json_requests_are_422(session, scene):
     check(api.http.post("/sessions", json={"config": {"device": "cuda"}}), 422, "config.device")
     check(api.http.post("/sessions", json={"preset": "nope"}), 422, "preset", "unknown preset")
     check(api.http.post("/sessions", json={"preset": "../etc"}), 422, "preset")
+    check(api.http.post("/sessions", json={"preset": "tum+"}), 422, "preset")
+    check(api.http.post("/sessions", json={"preset": "tum+nope"}), 422, "preset", "unknown preset")
+    composed, _ = api.create("composed", config=FAST, preset="synthetic+cpu")  # names composed as on the CLI
+    row = srv.manager.get(composed)
+    assert row.preset == "synthetic+cpu" and row.config["sized_for"] == "cpu"
     check(api.http.post("/sessions", json={"name": "x", "colour": 1}), 422, "colour")
     K = scene.capture[0].K
     render = {"T_world_cam": (2 * np.eye(4)).tolist(), "width": 32, "height": 24,
               "intrinsics": {"fx": K[0, 0], "fy": K[1, 1], "cx": 10, "cy": 10}}
     check(api.http.post(f"/sessions/{sid}/render", json=render, headers=api.auth(token)), 422, "T_world_cam")
+    nan_pose = np.eye(4).tolist()
+    nan_pose[0][3] = float("nan")
+    r = api.http.post(f"/sessions/{sid}/render", content=json.dumps({**render, "T_world_cam": nan_pose}),
+                      headers={**api.auth(token), "Content-Type": "application/json"})
+    check(r, 422, "T_world_cam", "T_world_cam: contains non-finite")
+    assert r.json()["detail"].count("T_world_cam") == 1 and "Value error" not in r.json()["detail"]
+    check(api.http.post("/sessions", content=b'{"name": "x",', headers={"Content-Type": "application/json"}),
+          422, None, "the request body is not valid JSON at character")
     render["T_world_cam"] = np.eye(4).tolist()
     render["intrinsics"]["cx"] = 100.0
     check(api.http.post(f"/sessions/{sid}/render", json=render, headers=api.auth(token)), 422, "intrinsics")

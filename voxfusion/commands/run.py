@@ -18,6 +18,7 @@ memory) and ``frames.json``. An OUT holding another command's outputs (a ``voxfu
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -31,7 +32,7 @@ from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for,
 
 from .outputs import claim_output_dir
 
-__all__ = ["register", "config_for_capture", "mesh_metric_rows"]
+__all__ = ["register", "config_for_capture", "mesh_metric_rows", "consistency_row"]
 
 _GT_LABELS = {"mesh_observed_gt": "vs observed GT", "mesh_full_gt": "vs whole GT"}
 
@@ -116,10 +117,18 @@ def register(app: typer.Typer) -> None:
             if key in result.metrics:
                 ate_cm = 100 * result.metrics[key]["rmse_m"]
                 rows.append({"metric": f"ATE rmse [cm] ({key[4:]} align)", "value": ate_cm})
-        for name, gaps in result.metrics.get("depth_consistency", {}).items():
-            rows.append({"metric": f"depth disagreement [cm] ({name} poses)",
-                         "value": " / ".join(f"{v:.2f}" for v in gaps.values()) + "  at frame gaps "
-                         + " / ".join(k.split("_")[1] for k in gaps)})
+        rows += [consistency_row(name, gaps) for name, gaps in result.metrics.get("depth_consistency", {}).items()]
         rows += mesh_metric_rows(result.metrics)
         typer.echo(format_table(rows))
         typer.echo(f"outputs in {out}")
+
+
+def consistency_row(name: str, gaps: dict[str, float | None]) -> dict[str, str]:
+    """The summary table's row of one trajectory's depth disagreement (``{"gap_15_cm": 0.94, ...}``, NaN or None
+    where no pair of frames that far apart overlapped: "n/a", said why)."""
+    cm = [v if v is not None and math.isfinite(v) else None for v in gaps.values()]
+    value = " / ".join("n/a" if v is None else f"{v:.2f}" for v in cm) + "  at frame gaps " + " / ".join(
+        k.split("_")[1] for k in gaps)
+    if None in cm:
+        value += "  (n/a: no frame pair that far apart sees the same surfaces)"
+    return {"metric": f"depth disagreement [cm] ({name} poses)", "value": value}

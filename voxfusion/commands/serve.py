@@ -78,6 +78,14 @@ def serve_command(
     if (zenoh_listen or zenoh_secrets) and zenoh is False:
         raise typer.BadParameter("--zenoh-listen / --zenoh-secrets need the zenoh bridge; drop --no-zenoh",
                                  param_hint="--zenoh-listen")
+    if config is not None:  # the server checks it again at startup; here a bad name is one line, not a traceback
+        from voxfusion.core.errors import ConfigError
+        from voxfusion.core.slam_config import check_preset_name
+
+        try:
+            check_preset_name(config)
+        except ConfigError as e:
+            raise typer.BadParameter(e.problem, param_hint="--config") from None
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings = ServerSettings.from_env(
         data_dir=data_dir, device=device, default_preset=config,

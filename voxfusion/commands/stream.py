@@ -123,7 +123,8 @@ def session_preset(capture: Capture, server_device: str | None, sets: list[str] 
                       f"{profile.kind}; {profile.describe()}); the server has a CUDA device: GPU sizes")
             return SessionPreset(name, reason)
     device = server_device if cuda else ("cpu" if server_device is not None else "auto")
-    choice = preset_for(capture, device, sets)
+    choice = preset_for(capture, device, sets,
+                        cpu_why="the server has no CUDA device" if server_device is not None else None)
     where = (f"; the server's device is {server_device} (/healthz)" if server_device is not None
              else "; sized for this machine's device (zenoh does not report the server's)")
     return SessionPreset(choice.preset, choice.reason + where)

@@ -212,6 +212,10 @@ def test_errors_exit_2_and_name_the_problem(app, files, tmp_path):
     result = runner.invoke(app, ["eval", "--mesh", str(tmp_path / "nomesh.ply"),
                                  "--gt-mesh", str(files["gt_mesh"])])
     assert result.exit_code == 2 and "nomesh.ply" in result.stderr
+    binary = tmp_path / "mesh_as_traj.ply"  # a mesh given as the trajectory: named, no traceback
+    binary.write_bytes(b"ply\nformat binary_little_endian 1.0\n\xbf\xff\x00\x81")
+    result = runner.invoke(app, ["eval", "--traj", str(binary), "--gt", str(files["gt"])])
+    assert result.exit_code == 2 and "mesh_as_traj.ply" in result.stderr and "not a text file" in result.stderr
     # Timestamps that associate with nothing: a ValidationError naming the trajectory.
     far = Trajectory(np.arange(5) + 1000.0, np.tile(np.eye(4), (5, 1, 1)))
     far_path = write_tum_trajectory(tmp_path / "far.txt", far)
