@@ -51,6 +51,7 @@ def streamed(tmp_path_factory):
     acks = [api.post_frame(sid, token, m) for m in scene.messages]
     wait_until(lambda: api.status(sid, token)["frames_tracked"] >= N_FRAMES, 300, "every frame to be tracked")
     wait_until(lambda: len(ws_messages) >= N_FRAMES, 30, "the WebSocket poses")
+    acks.append(api.post_frame(sid, token, scene.messages[3]))  # a retried frame (same seq): acknowledged, not kept
     yield srv, api, scene, sid, token, acks, ws_messages
     srv.stop()
     listener.join(timeout=30)
@@ -58,14 +59,14 @@ def streamed(tmp_path_factory):
 
 def test_frames_are_acknowledged_with_their_seq_and_recorded(streamed):
     srv, api, scene, sid, token, acks, _ = streamed
+    *acks, again = acks
     assert [a.status_code for a in acks] == [202] * N_FRAMES
     assert [a.json() for a in acks] == [{"seq": i, "session": sid, "duplicate": False, "action": "recorded"}
                                         for i in range(N_FRAMES)]
     cap = RecordingCapture(srv.settings.sessions_dir / sid)
     assert cap.seqs() == list(range(N_FRAMES))
     assert [cap.message(i) for i in range(N_FRAMES)] == scene.messages  # recorded byte for byte
-    # a retried frame (same seq) is acknowledged again but not recorded twice
-    again = api.post_frame(sid, token, scene.messages[3])
+    # the retried frame (same seq) was acknowledged again but not recorded twice
     assert again.status_code == 202 and again.headers["X-Duplicate"] == "true"
     assert again.json() == {"seq": 3, "session": sid, "duplicate": True, "action": "ignored"}
     assert len(RecordingCapture(srv.settings.sessions_dir / sid)) == N_FRAMES
