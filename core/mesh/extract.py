@@ -30,6 +30,7 @@ queried by both (a few % more queries at the default chunk size).
 
 from __future__ import annotations
 
+import itertools
 import numbers
 from collections.abc import Callable
 
@@ -154,9 +155,9 @@ def extract_mesh(
     per_chunk = max(1, chunk_points // n1**3)
     keys, positions, cells = [], [], []
     for start in range(0, len(coords), per_chunk):
-        sdf, valid, sample_index = _sample_lattice(coords[start:start + per_chunk], all_cells, step_m,
-                                                   sdf_fn, chunk_points, origin)
-        k, p, c = _march(coords[start:start + per_chunk], sdf[sample_index], valid[sample_index], R, origin,
+        n = min(per_chunk, len(coords) - start)
+        sdf, valid, sample_index = _sample_lattice(all_cells, start, n, step_m, sdf_fn, chunk_points)
+        k, p, c = _march(coords[start:start + n], sdf[sample_index], valid[sample_index], R, origin,
                          table)
         keys.append(k)
         positions.append(p)
@@ -195,17 +196,28 @@ def coarse_res_for(mesh_res: int) -> int:
 
 
 class _Cells:
-    """The sorted set of cells being meshed (``[n, 3]`` int64, ``R`` lattice steps per edge), for finding
-    the owner of a lattice sample: the first cell in sorted order that holds it. The owner depends only on
-    the sample and the whole set, never on how the cells are chunked."""
+    """The sorted set of cells being meshed (``[n, 3]`` int64, unique and sorted lexicographically, ``R`` lattice
+    steps per edge), for finding the owner of a lattice sample: the first cell in sorted order that holds it. The
+    owner depends only on the sample and the whole set, never on how the cells are chunked."""
 
     def __init__(self, coords: torch.Tensor, R: int) -> None:
         self.R = R
+        self.coords = coords  # sorted, unique: row i is the cell of key i
         self.lo = coords.min(dim=0).values - 1
-        self.keys = torch.sort(_pack(coords - self.lo)).values  # sorts as coords do (lexicographically)
+        self.keys = _pack(coords - self.lo)  # sorted as coords are (lexicographically)
+        self.samples = _CellSamples(R, coords.device)
+
+    def neighbours(self, start: int, n: int) -> torch.Tensor:
+        """``[n, 27]`` int64: for cells ``start .. start + n`` and each offset of :data:`_NEIGHBOURS`, the row of
+        that neighbour in the set, or -1 where it is not in the set."""
+        cand = self.coords[start:start + n, None, :] + _NEIGHBOURS.to(self.coords.device)  # [n, 27, 3]
+        key = _pack(cand - self.lo)
+        pos = torch.searchsorted(self.keys, key).clamp(max=len(self.keys) - 1)
+        return torch.where(self.keys[pos] == key, pos, -1)
 
     def owners(self, lattice: torch.Tensor) -> torch.Tensor:
-        """``[S, 3]`` int64 owner cell of each lattice point ``[S, 3]`` (each lies in at least one cell)."""
+        """``[S, 3]`` int64 owner cell of each lattice point ``[S, 3]`` (each lies in at least one cell): the plain
+        rule, point by point (up to 8 searches each); :meth:`owned_samples` computes the same per cell."""
         base = torch.div(lattice, self.R, rounding_mode="floor")
         on_face = torch.remainder(lattice, self.R) == 0
         owner = base.clone()  # a point inside a cell's interior belongs to that cell
@@ -224,27 +236,83 @@ class _Cells:
             found[rows] = True
         return owner
 
+    def owned_samples(self, start: int, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each lattice sample of cells ``start .. start + n`` (``(R + 1)^3`` per cell, in
+        :class:`_CellSamples` order) as its owner's row in the set and its offset within the owner: ``rows
+        [n, (R+1)^3]`` int64 and ``offsets [n, (R+1)^3]`` int64 (flat, into ``(R+1)^3``). One pair per lattice
+        point, whichever cell lists it: the point's canonical name. The owner is :meth:`owners`' (the first of
+        the at most 8 cells holding it in sorted order), found per cell and per kind of sample (which faces it
+        lies on, 27 kinds) from the cell's 26 neighbours rather than by a search per sample."""
+        table = self.samples
+        nb = self.neighbours(start, n)
+        present = torch.cat([nb, torch.full((n, 1), -1, dtype=torch.long, device=nb.device)], 1) >= 0  # [n, 28]
+        first = present[:, table.candidates].to(torch.uint8).argmax(dim=2)  # [n, 27]: the cell itself is present
+        owner = table.candidates[table.kinds, first]  # [n, 27] the owner's _NEIGHBOURS row, per kind
+        kind = table.kind.expand(n, -1)
+        rows = nb.gather(1, owner).gather(1, kind)
+        offsets = table.sample_ids - table.shift[owner].gather(1, kind)
+        return rows, offsets
 
-def _sample_lattice(coords: torch.Tensor, cells: _Cells, step_m: float, query_fn: QueryFn, chunk_points: int,
-                    origin: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """SDF at the lattice samples of cells ``coords`` ``[n, 3]`` (``R + 1`` per edge), each queried once.
+
+class _CellSamples:
+    """The ``(R + 1)^3`` lattice samples of a cell of ``R`` steps, in (x, y, z) order (``local [S, 3]`` int64
+    offsets), by kind: which faces a sample lies on (per axis: coordinate 0, which the neighbour below on that
+    axis holds too, ``R``, which the one above holds, or neither; ``kind [S]``, 27 kinds). For each kind, the
+    cells holding such a sample as :data:`_NEIGHBOURS` rows in the cells' sorted order (``candidates [27, 8]``,
+    padded with 27), and by how much a sample's flat offset drops when it is named from a neighbour
+    (``shift [27]``)."""
+
+    def __init__(self, R: int, device: torch.device) -> None:
+        n1 = R + 1
+        local = np.stack(np.meshgrid(*[np.arange(n1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        side = np.where(local == 0, 0, np.where(local == R, 2, 1))  # [S, 3]: below, neither, above
+        candidates = np.full((27, 8), 27, dtype=np.int64)
+        for k, sides in enumerate(itertools.product(range(3), repeat=3)):
+            axes = [(-1, 0) if v == 0 else (0, 1) if v == 2 else (0,) for v in sides]
+            for j, e in enumerate(itertools.product(*axes)):  # lexicographic: the cells' sorted order
+                candidates[k, j] = (e[0] + 1) * 9 + (e[1] + 1) * 3 + (e[2] + 1)
+        self.local = torch.from_numpy(local).to(device)
+        self.kind = torch.from_numpy(side @ np.array([9, 3, 1]))[None].to(device)  # [1, S]
+        self.candidates = torch.from_numpy(candidates).to(device)
+        self.shift = (_NEIGHBOURS @ torch.tensor([n1 * n1, n1, 1]) * R).to(device)
+        self.sample_ids = torch.arange(len(local), device=device)
+        self.kinds = torch.arange(27, device=device)
+
+
+_NEIGHBOURS = torch.cartesian_prod(*[torch.arange(-1, 2)] * 3)
+"""``[27, 3]`` int64 offsets of a cell and its neighbours, in lexicographic order (row 13 is the cell)."""
+
+
+def _sample_lattice(cells: _Cells, start: int, n: int, step_m: float, query_fn: QueryFn, chunk_points: int
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """SDF at the lattice samples of cells ``start .. start + n`` of ``cells`` (``R + 1`` per edge), each
+    queried once.
 
     Returns ``sdf [S]`` float32, ``valid [S]`` bool over the deduplicated samples and ``sample_index
     [n, R+1, R+1, R+1]`` int64 into them. Each sample is looked up from inside its owner cell
-    (:class:`_Cells`), see :func:`_inside`.
+    (:class:`_Cells`), see :func:`_inside`. The samples whose owner is one of these cells are listed from their
+    owner; the others (on the border with cells of other chunks) once each, after them.
     """
     R = cells.R
     n1 = R + 1
-    local = torch.stack(torch.meshgrid(*[torch.arange(n1, device=coords.device)] * 3, indexing="ij"),
-                        -1).view(-1, 3)
-    keys = (_pack(coords * R - origin)[:, None] + _pack(local)[None, :]).view(-1)  # fields never carry
-    lattice_keys, sample_index = torch.unique(keys, return_inverse=True)
-    del keys
+    per_cell = n1**3
+    rows, offsets = cells.owned_samples(start, n)
+    names = (rows * per_cell + offsets).view(-1) - start * per_cell  # [n S]; 0 .. n S - 1 when owned here
+    own = names == torch.arange(len(names), device=names.device)
+    own_flat = own.nonzero().squeeze(1)
+    in_chunk = (names >= 0) & (names < len(names))
+    sample_index = (own.cumsum(0) - 1).gather(0, names.clamp(0, len(names) - 1))  # its slot in own_flat
+    outside = (~in_chunk).nonzero().squeeze(1)
+    outside_names, outside_index = torch.unique(names[outside], return_inverse=True)
+    sample_index[outside] = len(own_flat) + outside_index
+    owner_rows = torch.cat([rows.view(-1).index_select(0, own_flat), outside_names // per_cell + start])
+    local = torch.cat([offsets.view(-1).index_select(0, own_flat), outside_names % per_cell])
+    owner = cells.coords.index_select(0, owner_rows)
+    lattice = owner * R + cells.samples.local.index_select(0, local)
     sdf, valid = [], []
-    for keys in lattice_keys.split(chunk_points):
-        lattice = _unpack(keys) + origin
-        owner = cells.owners(lattice)
-        s, _, ok = _call(query_fn, _inside(lattice, owner * R + R / 2, R, step_m))
+    for first in range(0, len(lattice), chunk_points):
+        part = slice(first, first + chunk_points)
+        s, _, ok = _call(query_fn, _inside(lattice[part], owner[part] * R + R / 2, R, step_m))
         sdf.append(s.float())
         valid.append(ok & torch.isfinite(s))
     return torch.cat(sdf), torch.cat(valid), sample_index.view(-1, n1, n1, n1)
@@ -257,7 +325,6 @@ def _near_surface_cells(coords: torch.Tensor, c: int, cell_m: float, query_fn: Q
     ``|sdf| <= 0.6 *`` the cell diagonal (any point of a cube is within half its diagonal of some
     corner, so a surface inside the cell is that close to a corner of an exact SDF; the margin covers a
     learned field that is not exactly one)."""
-    origin = coords.min(dim=0).values * c
     all_cells = _Cells(coords, c)
     n1 = c + 1
     per_chunk = max(1, chunk_points // n1**3)
@@ -265,7 +332,7 @@ def _near_surface_cells(coords: torch.Tensor, c: int, cell_m: float, query_fn: Q
     out = []
     for start in range(0, len(coords), per_chunk):
         part = coords[start:start + per_chunk]
-        sdf, valid, index = _sample_lattice(part, all_cells, cell_m, query_fn, chunk_points, origin)
+        sdf, valid, index = _sample_lattice(all_cells, start, len(part), cell_m, query_fn, chunk_points)
         s, ok = sdf[index], valid[index]  # [n, c+1, c+1, c+1]
         near = torch.zeros(len(part), c, c, c, dtype=torch.bool, device=coords.device)
         neg = torch.zeros_like(near)
@@ -450,11 +517,6 @@ def _check_coords(voxel_coords: torch.Tensor | np.ndarray, device: torch.device)
 def _pack(lattice: torch.Tensor) -> torch.Tensor:
     """Non-negative lattice offsets ``[..., 3]`` int64 -> keys ``[...]`` int64 (20 bits per axis)."""
     return (lattice[..., 0] << (2 * _AXIS_BITS)) | (lattice[..., 1] << _AXIS_BITS) | lattice[..., 2]
-
-
-def _unpack(keys: torch.Tensor) -> torch.Tensor:
-    mask = (1 << _AXIS_BITS) - 1
-    return torch.stack([keys >> (2 * _AXIS_BITS), (keys >> _AXIS_BITS) & mask, keys & mask], -1)
 
 
 def _empty_mesh() -> trimesh.Trimesh:

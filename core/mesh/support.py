@@ -54,7 +54,9 @@ class SurfaceSupport:
             self._offsets = torch.zeros(1, 3, dtype=torch.int64, device=self.device)
             return
         r = torch.arange(-dilate, dilate + 1, device=self.device)
-        self._offsets = torch.cartesian_prod(r, r, r).view(-1, 3)
+        offsets = torch.cartesian_prod(r, r, r).view(-1, 3)
+        # nearest first (the cell itself, then faces, edges, corners): most points are settled by the first few
+        self._offsets = offsets[torch.argsort(offsets.abs().sum(1), stable=True)]
         self._lo = cells.min(0).values - dilate
         self._hi = cells.max(0).values + dilate
         if int((self._hi - self._lo).max()) >= 1 << _BITS:
@@ -69,15 +71,36 @@ class SurfaceSupport:
             return None
         return cls(voxel_map.surface_cells(), voxel_map.voxel_size_m / SURFACE_CELLS, dilate)
 
-    def __call__(self, points_world: torch.Tensor) -> torch.Tensor:
-        """``[N]`` bool: point ``[N, 3]`` (world metres) lies in a supported cell."""
+    def _cells(self, points_world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The cell ``[N, 3]`` int64 of each point ``[N, 3]`` (world metres) and whether its neighbourhood can
+        hold a supported cell at all (``[N]`` bool)."""
         if points_world.dim() != 2 or points_world.shape[1] != 3:
             raise ShapeError("points_world", tuple(points_world.shape), "[N, 3]")
         cell = torch.floor(points_world.to(self.device, torch.float64) / self.cell_size_m).to(torch.int64)
-        inside = ((cell >= self._lo) & (cell <= self._hi)).all(dim=1)
+        return cell, ((cell >= self._lo) & (cell <= self._hi)).all(dim=1) & (self.n_cells > 0)
+
+    def __call__(self, points_world: torch.Tensor) -> torch.Tensor:
+        """``[N]`` bool: point ``[N, 3]`` (world metres) lies in a supported cell."""
+        cell, inside = self._cells(points_world)
         out = torch.zeros(len(cell), dtype=torch.bool, device=self.device)
-        if self.n_cells == 0 or not bool(inside.any()):
-            return out
+        pending = inside.nonzero().squeeze(1)  # points not yet found supported
+        top = self._lo + (1 << _BITS) - 1
+        for offset in self._offsets:  # a point stops probing once one of its neighbours is found
+            if len(pending) == 0:
+                break
+            c = cell[pending] + offset
+            ok = ((c >= self._lo) & (c <= top)).all(1)
+            key = self._pack((c - self._lo).clamp(min=0))
+            pos = torch.searchsorted(self._keys, key).clamp(max=len(self._keys) - 1)
+            found = (self._keys[pos] == key) & ok
+            out[pending[found]] = True
+            pending = pending[~found]
+        return out
+
+    def reference(self, points_world: torch.Tensor) -> torch.Tensor:
+        """:meth:`__call__` the plain way: every point probes its whole neighbourhood at once (``[N]`` bool)."""
+        cell, inside = self._cells(points_world)
+        out = torch.zeros(len(cell), dtype=torch.bool, device=self.device)
         rows = inside.nonzero().squeeze(1)
         for part in rows.split(1 << 15):  # bounds the probe tensors to ~40 MB
             c = cell[part][:, None, :] + self._offsets  # [n, 27, 3] the neighbourhood

@@ -353,3 +353,25 @@ def test_two_level_extraction_matches_one_level_on_a_shuffled_irregular_map():
     assert len(two.faces) == len(one.faces)
     _, nearest = cKDTree(one.triangles_center).query(two.triangles_center)
     assert np.abs(one.triangles[nearest] - two.triangles).max() < 5e-5
+
+
+@pytest.mark.parametrize("R", [1, 2, 5])
+def test_each_cells_samples_are_named_by_the_owner_the_plain_rule_finds(R):
+    """The per-cell owner rule (26 neighbours per cell, 27 kinds of sample) against the plain one (up to 8 searches
+    per sample) on an irregular map: every sample of every cell, also where chunks split the cells."""
+    from voxfusion.core.mesh.extract import _Cells
+
+    g = torch.Generator().manual_seed(3)
+    coords = torch.unique(torch.randint(-4, 4, (300, 3), generator=g), dim=0)  # sorted, with holes
+    cells = _Cells(coords, R)
+    for start, n in ((0, len(coords)), (17, 40), (len(coords) - 5, 5)):
+        rows, offsets = cells.owned_samples(start, n)
+        lattice = (coords[start:start + n, None, :] * R + cells.samples.local).view(-1, 3)
+        expected = cells.owners(lattice)
+        assert torch.equal(coords[rows.view(-1)], expected)
+        assert torch.equal(expected * R + cells.samples.local[offsets.view(-1)], lattice)
+    # a point shared by several cells gets one name from each of them
+    rows, offsets = cells.owned_samples(0, len(coords))
+    lattice = (coords[:, None, :] * R + cells.samples.local).view(-1, 3)
+    names = rows.view(-1) * (R + 1) ** 3 + offsets.view(-1)
+    assert len(torch.unique(names)) == len(torch.unique(lattice, dim=0))

@@ -151,3 +151,19 @@ def test_image_colours_follow_the_pixels_and_skip_occluded_views():
                     torch.tensor([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -2.0], [0, 0, 0, 1]], dtype=torch.float64))
     rgb2, _ = image_vertex_colors(pts[:1], None, [view, far])
     assert 0.5 < float(rgb2[0, 0]) < 1.0 and float(rgb2[0, 0]) > 0.5 + 0.25
+
+
+@pytest.mark.parametrize("dilate", [0, 1, 2])
+def test_support_probes_nearest_first_and_agrees_with_the_whole_neighbourhood(dilate):
+    g = torch.Generator().manual_seed(dilate)
+    cells = torch.randint(-30, 30, (400, 3), generator=g)
+    support = SurfaceSupport(cells, cell_size_m=0.0125, dilate=dilate)
+    spread = 2 * dilate + 4  # cells around each picked cell, its supported block in the middle
+    near = cells[torch.randint(0, 400, (3000,), generator=g)] + torch.rand(3000, 3, generator=g) * spread
+    near = (near - spread / 2 + 0.5) * 0.0125
+    far = (torch.rand(500, 3, generator=g, dtype=torch.float64) - 0.5) * 3.0  # many outside the cells' bounds
+    points = torch.cat([near.double(), far])
+    got = support(points)
+    assert torch.equal(got, support.reference(points))
+    assert 0.01 < float(got[:3000].float().mean()) < 0.9  # both answers occur
+    assert torch.equal(SurfaceSupport(cells[:0], 0.0125, dilate)(points), torch.zeros(len(points), dtype=torch.bool))
