@@ -110,6 +110,26 @@ def auto_stride_px(width: int) -> int:
     return max(1, int(width) // 160)
 
 
+def _unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(keys, axis=0, return_inverse=True)`` for integer rows ``[N, 3]``: the same sorted rows ``[U, 3]``
+    and inverse ``[N]``, through one int64 key per row (mixed radix over the rows' ranges, which sorts as the rows
+    do) where those ranges fit in 62 bits; several times faster than sorting rows (1.3 M rows of voxel keys:
+    np.unique on rows took ~3-5 s on the 2-core AMD EPYC)."""
+    if len(keys) == 0:
+        return keys.reshape(0, 3), np.zeros(0, dtype=np.int64)
+    lo = keys.min(0)
+    span = keys.max(0) - lo + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
+        uniq, inv = np.unique(keys, axis=0, return_inverse=True)
+        return uniq, inv.reshape(-1)
+    rel = keys - lo
+    packed = (rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]
+    uniq_packed, inv = np.unique(packed, return_inverse=True)
+    yz, z = np.divmod(uniq_packed, span[2])
+    x, y = np.divmod(yz, span[1])
+    return np.stack([x, y, z], 1) + lo, inv.reshape(-1)
+
+
 class _VoxelMerger:
     """Running voxel-centroid merge of point batches (sums and counts per voxel key)."""
 
@@ -137,8 +157,7 @@ class _VoxelMerger:
                     np.concatenate([self.counts, np.ones(len(pts))]))
 
     def _merge(self, keys: np.ndarray, sums: np.ndarray, counts: np.ndarray) -> None:
-        uniq, inv = np.unique(keys, axis=0, return_inverse=True)
-        inv = inv.reshape(-1)
+        uniq, inv = _unique_rows(keys)
         out = np.zeros((len(uniq), 3))
         for k in range(3):
             out[:, k] = np.bincount(inv, weights=sums[:, k], minlength=len(uniq))

@@ -130,3 +130,15 @@ def test_phantom_for_capture_uses_the_trajectory_or_the_reference_poses():
     no_pose = ListCapture([f.with_(T_world_cam=None) for f in frames])
     with pytest.raises(ValidationError, match="no reference poses"):
         phantom_for_capture(seen, no_pose, n_samples=100)
+
+
+def test_voxel_keys_are_deduplicated_as_rows_are():
+    from voxfusion.core.eval.phantom import _unique_rows
+
+    rng = np.random.default_rng(0)
+    keys = rng.integers(-40, 40, (5000, 3))
+    keys = np.concatenate([keys, keys[:1500], [[2**40, -(2**40), 0]]])  # repeats; a span past 62 bits: the fallback
+    for k in (keys[:-1], keys, keys[:0]):
+        uniq, inv = _unique_rows(k)
+        expected, expected_inv = np.unique(k.reshape(-1, 3), axis=0, return_inverse=True)
+        assert np.array_equal(uniq, expected) and np.array_equal(inv, expected_inv.reshape(-1))
