@@ -113,8 +113,8 @@ def auto_stride_px(width: int) -> int:
 def _unique_rows(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(keys, axis=0, return_inverse=True)`` for integer rows ``[N, 3]``: the same sorted rows ``[U, 3]``
     and inverse ``[N]``, through one int64 key per row (mixed radix over the rows' ranges, which sorts as the rows
-    do) where those ranges fit in 62 bits; several times faster than sorting rows (1.3 M rows of voxel keys:
-    np.unique on rows took ~3-5 s on the 2-core AMD EPYC)."""
+    do) where those ranges fit in 62 bits, else ``np.unique`` on rows. 1.7 M rows of voxel keys on the 2-core AMD
+    EPYC: 0.54 s against 3.7 s for ``np.unique`` on rows."""
     if len(keys) == 0:
         return keys.reshape(0, 3), np.zeros(0, dtype=np.int64)
     lo = keys.min(0)

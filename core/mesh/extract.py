@@ -301,7 +301,8 @@ def _sample_lattice(cells: _Cells, start: int, n: int, step_m: float, query_fn: 
     own = names == torch.arange(len(names), device=names.device)
     own_flat = own.nonzero().squeeze(1)
     in_chunk = (names >= 0) & (names < len(names))
-    sample_index = (own.cumsum(0) - 1).gather(0, names.clamp(0, len(names) - 1))  # its slot in own_flat
+    # each sample's slot in own_flat (read through a clamped name for the samples outside, which are set below)
+    sample_index = (own.cumsum(0) - 1).gather(0, names.clamp(0, len(names) - 1))
     outside = (~in_chunk).nonzero().squeeze(1)
     outside_names, outside_index = torch.unique(names[outside], return_inverse=True)
     sample_index[outside] = len(own_flat) + outside_index
