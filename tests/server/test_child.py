@@ -44,3 +44,26 @@ def test_zenoh_listen_with_no_zenoh_is_refused():
     result = CliRunner().invoke(app, ["serve", "--no-zenoh", "--zenoh-listen", "tcp/127.0.0.1:7447"])
     assert result.exit_code == 2
     assert "--no-zenoh" in result.output
+
+
+def test_serve_on_a_busy_port_is_one_line_before_anything_starts(tmp_path):
+    """uvicorn binds after the app's startup (sessions opened, zenoh started, "ready" logged), then exits on
+    [Errno 98]; the command checks the port first."""
+    import socket
+
+    from typer.testing import CliRunner
+
+    from voxfusion.cli import app
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        result = CliRunner().invoke(app, ["serve", "--no-zenoh", "--port", str(port), "--data-dir",
+                                          str(tmp_path / "data")])
+    assert result.exit_code == 2, result.output
+    assert f"cannot listen on 127.0.0.1:{port}" in result.output and "--port" in result.output
+    assert "server ready" not in result.output and "Traceback" not in result.output
+    result = CliRunner().invoke(app, ["serve", "--no-zenoh", "--host", "no-such-host.invalid", "--data-dir",
+                                      str(tmp_path / "data")])
+    assert result.exit_code == 2 and "cannot resolve --host 'no-such-host.invalid'" in result.output, result.output

@@ -12,6 +12,7 @@ and (``--zenoh``, on by default when the ``zenoh`` package is installed) an in-p
 
 from __future__ import annotations
 
+import errno
 from pathlib import Path
 from typing import Annotated
 
@@ -104,12 +105,36 @@ def serve_command(
                                  "network read session tokens: add --zenoh-secrets DIR (clients then use "
                                  "DIR/client.json5), or --zenoh-insecure on a network you trust",
                                  param_hint="--zenoh-listen")
+    problem = _port_problem(host, port)
+    if problem:  # uvicorn would start the app (sessions, zenoh; "ready" logged) before failing to bind
+        raise typer.BadParameter(problem, param_hint="--port")
     typer.echo(f"voxfusion server on http://{host}:{port} (docs: /docs), data in {data_dir}")
     from voxfusion.server.auth import RedactTokens
 
     for name in ("uvicorn.access", "uvicorn.error"):  # the viewer link and the pose WebSocket carry ?token=
         logging.getLogger(name).addFilter(RedactTokens())
     uvicorn.run(create_app(settings), host=host, port=port, log_level=log_level.lower(), timeout_graceful_shutdown=30)
+
+
+def _port_problem(host: str, port: int) -> str | None:
+    """Why ``host:port`` cannot be listened on (bound as uvicorn binds it: ``SO_REUSEADDR``, so a port in
+    TIME_WAIT is fine), or None. Checked before the app starts, so a busy port is one line and exit code 2."""
+    import socket
+
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        return f"cannot resolve --host {host!r}: {e.strerror}"
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(address)
+        except OSError as e:
+            hint = ("another program (perhaps another voxfusion serve) is listening there: stop it or pick "
+                    "another --port" if e.errno == errno.EADDRINUSE else "pick another --host or --port")
+            return f"cannot listen on {host}:{port}: {e.strerror}; {hint}"
+    return None
 
 
 def _on_loopback(endpoint: str) -> bool:
