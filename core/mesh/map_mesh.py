@@ -12,7 +12,7 @@ import trimesh
 
 from ..field import SDFDecoder, query
 from ..voxels import VoxelMap
-from .colors import ColorView, image_vertex_colors
+from .colors import ColorView, image_vertex_colors, vertex_normals
 from .extract import extract_mesh
 from .support import SurfaceSupport
 
@@ -47,8 +47,8 @@ def extract_map_mesh(voxel_map: VoxelMap, decoder: SDFDecoder, mesh_res: int, su
                         lattice_query_fn=lambda p: field_query(p, with_color=False))
     if color_views and len(mesh.faces):
         vertices = torch.from_numpy(np.asarray(mesh.vertices)).to(voxel_map.device)
-        normals = torch.from_numpy(np.array(mesh.vertex_normals)).to(voxel_map.device)  # a writable copy
-        rgb, seen = image_vertex_colors(vertices, normals, color_views)
+        faces = torch.from_numpy(np.asarray(mesh.faces, dtype=np.int64)).to(voxel_map.device)
+        rgb, seen = image_vertex_colors(vertices, vertex_normals(vertices, faces), color_views)
         colors = np.asarray(mesh.visual.vertex_colors).copy()
         seen_np = seen.cpu().numpy()
         colors[seen_np, :3] = (rgb[seen].cpu().numpy() * 255.0).round().astype(np.uint8)

@@ -153,6 +153,31 @@ def test_image_colours_follow_the_pixels_and_skip_occluded_views():
     assert 0.5 < float(rgb2[0, 0]) < 1.0 and float(rgb2[0, 0]) > 0.5 + 0.25
 
 
+def test_vertex_normals_are_area_weighted_face_normals():
+    """The colour weights' normals: outward on a sphere (trimesh's own within a degree there), the area-weighted
+    sum at a box corner, zero for a vertex without a face, and an empty mesh."""
+    import trimesh
+
+    from voxfusion.core.mesh.colors import vertex_normals
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.7)
+    v = torch.from_numpy(np.asarray(sphere.vertices))
+    f = torch.from_numpy(np.asarray(sphere.faces, dtype=np.int64))
+    n = vertex_normals(v, f)
+    assert n.dtype == v.dtype and n.shape == v.shape
+    radial = torch.nn.functional.normalize(v, dim=1)
+    assert float((n * radial).sum(1).min()) > np.cos(np.radians(1.0))
+    assert float((n * torch.from_numpy(np.array(sphere.vertex_normals))).sum(1).min()) > np.cos(np.radians(1.0))
+    # a corner where a big and a small face meet: the big one (area 2 against 0.5) pulls the normal towards it
+    pts = torch.tensor([[0, 0, 0], [2, 0, 0], [0, 2, 0], [0, 0, 1], [0, 1, 0], [5, 5, 5]], dtype=torch.float32)
+    tri = torch.tensor([[0, 1, 2], [0, 4, 3]])  # normals +z (area 2) and +x (area 0.5)
+    n = vertex_normals(pts, tri)
+    want = torch.nn.functional.normalize(torch.tensor([[0.5, 0, 2.0]]), dim=1)[0]  # 4 times less +x than +z
+    torch.testing.assert_close(n[0], want, rtol=0, atol=1e-6)
+    assert n[5].tolist() == [0.0, 0.0, 0.0]
+    assert vertex_normals(pts, torch.zeros(0, 3, dtype=torch.int64)).abs().sum() == 0
+
+
 @pytest.mark.parametrize("dilate", [0, 1, 2])
 def test_support_probes_nearest_first_and_agrees_with_the_whole_neighbourhood(dilate):
     g = torch.Generator().manual_seed(dilate)
