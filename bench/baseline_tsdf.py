@@ -70,6 +70,7 @@ __all__ = [
     "FrameTimings",
     "MissingDependencyError",
     "TSDFBaselineConfig",
+    "TSDFBaselineRun",
     "require_open3d",
     "run_tsdf_baseline",
     "save_result",
@@ -318,104 +319,164 @@ def run_tsdf_baseline(capture: Capture, config: TSDFBaselineConfig | None = None
         ConfigError: bad options, or a CUDA device without a CUDA build of Open3D.
         ValidationError / ShapeError: an empty capture, or frames whose image size changes.
     """
-    config = config if config is not None else TSDFBaselineConfig()
-    if not isinstance(config, TSDFBaselineConfig):
-        raise ValidationError("config", f"must be a TSDFBaselineConfig, got {type(config).__name__}")
     if max_frames is not None and max_frames < 1:
         raise ValidationError("max_frames", f"must be >= 1 or None, got {max_frames}")
     n = len(capture) if max_frames is None else min(len(capture), max_frames)
     if n == 0:
         raise ValidationError("capture", f"{getattr(capture, 'name', 'capture')} has no frames")
-    o3d = require_open3d()
-    device = _device(o3d, config.device)
-    shift_m = 0.5 * config.voxel_size_m if config.fix_raycast_half_voxel else 0.0
+    run = TSDFBaselineRun(config)
     bar = None
     if progress:
         from tqdm import tqdm
 
         bar = tqdm(total=n, desc="tsdf-baseline", unit="frame", leave=False)
-
-    timestamps, poses, failed = [], [], []
-    load_ms, track_ms, integrate_ms, raycast_ms = (np.zeros(n) for _ in range(4))
     tick = time.perf_counter
-    with PeakMemory() as mem, _quiet_open3d(o3d):
+    with PeakMemory() as mem, run.quiet():
         frames_it = capture.frames(0, n)
-        model = frames = None
-        T_world_cam = np.eye(4)
-        for i in range(n):
+        for _ in range(n):
             t0 = tick()
             frame = next(frames_it)
-            load_ms[i] = (tick() - t0) * 1e3
-            if frames is None:
-                if frame.T_world_cam is not None:
-                    T_world_cam = np.array(frame.T_world_cam, dtype=np.float64)
-                frames = _Frames(o3d, frame, device, config)
-                model = o3d.t.pipelines.slam.Model(config.voxel_size_m, config.block_resolution,
-                                                   config.block_count, o3d.core.Tensor(T_world_cam), device)
-            elif frame.depth_m.shape != frames.shape:
-                raise ShapeError(f"frame {i} depth_m", frame.depth_m.shape,
-                                 f"{frames.shape} (the first frame's size; the baseline needs one size)")
-            elif not frames.matches(frame):
-                raycast = frames.raycast
-                frames = _Frames(o3d, frame, device, config)
-                frames.raycast = raycast
-            frames.set(frame)
-
-            ok = True
-            if i > 0:
-                t0 = tick()
-                try:
-                    result = model.track_frame_to_model(frames.track, frames.raycast, 1.0, config.depth_max_m,
-                                                         config.odometry_distance_thr)
-                    T_step = result.transformation.cpu().numpy().astype(np.float64)
-                    ok = (bool(np.all(np.isfinite(T_step))) and result.fitness >= config.min_fitness
-                          and not _step_too_large(T_step, config))
-                except RuntimeError:
-                    ok = False
-                track_ms[i] = (tick() - t0) * 1e3
-                if ok:
-                    T_world_cam = T_world_cam @ T_step
-                else:
-                    failed.append(i)
-            if ok:
-                t0 = tick()
-                model.update_frame_pose(i, o3d.core.Tensor(T_world_cam))
-                model.integrate(frames.integrate, 1.0, config.depth_max_m, config.trunc_voxel_multiplier)
-                integrate_ms[i] = (tick() - t0) * 1e3
-                t0 = tick()
-                if shift_m:
-                    T_raycast = T_world_cam.copy()
-                    T_raycast[:3, 3] += shift_m
-                    model.update_frame_pose(i, o3d.core.Tensor(T_raycast))
-                model.synthesize_model_frame(frames.raycast, 1.0, config.depth_min_m, config.depth_max_m,
-                                             config.trunc_voxel_multiplier, False)
-                raycast_ms[i] = (tick() - t0) * 1e3
-            timestamps.append(frame.timestamp_s)
-            poses.append(T_world_cam.copy())
+            run.step(frame, load_ms=(tick() - t0) * 1e3)
             mem.sample()
             if bar is not None:
                 bar.update(1)
-        t0 = tick()
-        mesh = _to_trimesh(model.voxel_grid.extract_triangle_mesh(config.mesh_weight_threshold))
-        mesh_ms = (tick() - t0) * 1e3
-        n_blocks = int(model.voxel_grid.hashmap().size())
+        run.extract_mesh()
     if bar is not None:
         bar.close()
+    return run.result(mem.result, capture_name=getattr(capture, "name", None))
 
-    timings = FrameTimings(load_ms, track_ms, integrate_ms, raycast_ms)
-    total_s = float(timings.total_ms.sum()) / 1e3
-    return BaselineResult(
-        trajectory=Trajectory(np.asarray(timestamps), np.stack(poses)),
-        mesh=mesh,
-        timings=timings,
-        mesh_extraction_ms=mesh_ms,
-        fps=n / total_s if total_s > 0 else float("inf"),
-        memory=mem.result,
-        n_tracking_failures=len(failed),
-        failed_frames=failed,
-        config=config,
-        meta={"n_voxel_blocks": n_blocks, "open3d": o3d.__version__, "capture": getattr(capture, "name", None)},
-    )
+
+class TSDFBaselineRun:
+    """One run of the baseline, a frame at a time: what :func:`run_tsdf_baseline` loops over, and what a caller
+    interleaves frame by frame with another method so that both meet the same machine (``bench/fps_pair.py``).
+
+    Example::
+
+        run = TSDFBaselineRun(TSDFBaselineConfig())
+        with run.quiet():
+            for frame in capture.frames(0, len(capture)):
+                ms = run.step(frame)        # processing time of this frame (tracking + integration + ray cast)
+            run.extract_mesh()
+        result = run.result(memory)
+    """
+
+    def __init__(self, config: TSDFBaselineConfig | None = None) -> None:
+        config = config if config is not None else TSDFBaselineConfig()
+        if not isinstance(config, TSDFBaselineConfig):
+            raise ValidationError("config", f"must be a TSDFBaselineConfig, got {type(config).__name__}")
+        self.config = config
+        self.o3d = require_open3d()
+        self.device = _device(self.o3d, config.device)
+        self._shift_m = 0.5 * config.voxel_size_m if config.fix_raycast_half_voxel else 0.0
+        self._model = self._frames = None
+        self._T_world_cam = np.eye(4)
+        self._timestamps: list[float] = []
+        self._poses: list[np.ndarray] = []
+        self.failed: list[int] = []
+        self._ms: dict[str, list[float]] = {"load": [], "track": [], "integrate": [], "raycast": []}
+        self._mesh: trimesh.Trimesh | None = None
+        self._mesh_ms = 0.0
+
+    def quiet(self) -> contextlib.AbstractContextManager:
+        """Silence Open3D's per-frame INFO/WARNING lines inside the block."""
+        return _quiet_open3d(self.o3d)
+
+    def step(self, frame: RGBDFrame, load_ms: float = 0.0) -> float:
+        """Track ``frame`` against the model (not the first), integrate it and ray-cast the model at its pose;
+        returns this frame's processing time in milliseconds (``load_ms``, the caller's time to read it, is
+        recorded apart)."""
+        o3d, config, tick = self.o3d, self.config, time.perf_counter
+        i = len(self._timestamps)
+        if self._frames is None:
+            if frame.T_world_cam is not None:
+                self._T_world_cam = np.array(frame.T_world_cam, dtype=np.float64)
+            self._frames = _Frames(o3d, frame, self.device, config)
+            self._model = o3d.t.pipelines.slam.Model(config.voxel_size_m, config.block_resolution,
+                                                     config.block_count, o3d.core.Tensor(self._T_world_cam),
+                                                     self.device)
+        elif frame.depth_m.shape != self._frames.shape:
+            raise ShapeError(f"frame {i} depth_m", frame.depth_m.shape,
+                             f"{self._frames.shape} (the first frame's size; the baseline needs one size)")
+        elif not self._frames.matches(frame):
+            raycast = self._frames.raycast
+            self._frames = _Frames(o3d, frame, self.device, config)
+            self._frames.raycast = raycast
+        frames, model = self._frames, self._model
+        frames.set(frame)
+
+        ok = True
+        track_ms = integrate_ms = raycast_ms = 0.0
+        if i > 0:
+            t0 = tick()
+            try:
+                result = model.track_frame_to_model(frames.track, frames.raycast, 1.0, config.depth_max_m,
+                                                     config.odometry_distance_thr)
+                T_step = result.transformation.cpu().numpy().astype(np.float64)
+                ok = (bool(np.all(np.isfinite(T_step))) and result.fitness >= config.min_fitness
+                      and not _step_too_large(T_step, config))
+            except RuntimeError:
+                ok = False
+            track_ms = (tick() - t0) * 1e3
+            if ok:
+                self._T_world_cam = self._T_world_cam @ T_step
+            else:
+                self.failed.append(i)
+        if ok:
+            t0 = tick()
+            model.update_frame_pose(i, o3d.core.Tensor(self._T_world_cam))
+            model.integrate(frames.integrate, 1.0, config.depth_max_m, config.trunc_voxel_multiplier)
+            integrate_ms = (tick() - t0) * 1e3
+            t0 = tick()
+            if self._shift_m:
+                T_raycast = self._T_world_cam.copy()
+                T_raycast[:3, 3] += self._shift_m
+                model.update_frame_pose(i, o3d.core.Tensor(T_raycast))
+            model.synthesize_model_frame(frames.raycast, 1.0, config.depth_min_m, config.depth_max_m,
+                                         config.trunc_voxel_multiplier, False)
+            raycast_ms = (tick() - t0) * 1e3
+        self._timestamps.append(frame.timestamp_s)
+        self._poses.append(self._T_world_cam.copy())
+        for key, ms in (("load", load_ms), ("track", track_ms), ("integrate", integrate_ms), ("raycast", raycast_ms)):
+            self._ms[key].append(ms)
+        return track_ms + integrate_ms + raycast_ms
+
+    @property
+    def trajectory(self) -> Trajectory:
+        """The poses so far (``T_world_cam`` per processed frame, at the frames' timestamps)."""
+        if not self._poses:
+            raise ValidationError("capture", "no frame was processed")
+        return Trajectory(np.asarray(self._timestamps), np.stack(self._poses))
+
+    def extract_mesh(self) -> trimesh.Trimesh:
+        """The model's mesh (marching cubes), timed; ValidationError before any frame."""
+        if self._model is None:
+            raise ValidationError("capture", "no frame was processed")
+        t0 = time.perf_counter()
+        self._mesh = _to_trimesh(self._model.voxel_grid.extract_triangle_mesh(self.config.mesh_weight_threshold))
+        self._mesh_ms = (time.perf_counter() - t0) * 1e3
+        return self._mesh
+
+    def result(self, memory: MemoryUsage, capture_name: str | None = None) -> BaselineResult:
+        """The run's :class:`BaselineResult` (after :meth:`extract_mesh`); ``memory``: the caller's measure."""
+        if self._mesh is None:
+            raise ValidationError("mesh", "call extract_mesh() first")
+        n = len(self._timestamps)
+        timings = FrameTimings(*(np.asarray(self._ms[k], dtype=np.float64)
+                                 for k in ("load", "track", "integrate", "raycast")))
+        total_s = float(timings.total_ms.sum()) / 1e3
+        return BaselineResult(
+            trajectory=self.trajectory,
+            mesh=self._mesh,
+            timings=timings,
+            mesh_extraction_ms=self._mesh_ms,
+            fps=n / total_s if total_s > 0 else float("inf"),
+            memory=memory,
+            n_tracking_failures=len(self.failed),
+            failed_frames=list(self.failed),
+            config=self.config,
+            meta={"n_voxel_blocks": int(self._model.voxel_grid.hashmap().size()), "open3d": self.o3d.__version__,
+                  "capture": capture_name},
+        )
 
 
 def tsdf_render_back(frame: RGBDFrame, T_world_cam: np.ndarray,

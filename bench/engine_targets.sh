@@ -2,7 +2,8 @@
 # The real-time engine's CPU targets, one run after another on a quiet machine (each writes
 # bench/results/<name>.json with the machine, the command and both methods' metrics):
 #   * synthetic room 320x240, 100 frames, seeds 0/1/2: voxfusion (the preset `voxfusion run` picks) vs the
-#     TSDF baseline in the same run;
+#     TSDF baseline in the same run, and the frame rates again with both frame by frame in turn (bench/fps_pair.py,
+#     results/fps_pair_targets_*.json);
 #   * the same room under fast rotation (yaw swings peaking at 180 deg/s at 30 Hz), seeds 0/1/2, and the
 #     paper's render tracker beside it on seed 0;
 #   * 7-Scenes redkitchen frames 0-499 (baseline once: it is deterministic; voxfusion seeds 0/1/2);
@@ -56,6 +57,10 @@ fi
 if [ "$ONLY_HELDOUT" = 0 ]; then
 for s in $SEEDS; do
     run "targets_synthetic_100f_seed$s" --synthetic --frames 100 --seed "$s" --method baseline voxfusion
+    # the frame-rate target again, both methods frame by frame in turn (a shared machine's drift cancels)
+    echo "[targets] fps_pair_synthetic_100f_seed$s"
+    $PY bench/fps_pair.py --synthetic --frames 100 --seed "$s" --name "targets_synthetic_100f_seed$s" \
+        > "bench/logs/fps_pair_synthetic_100f_seed$s.log" 2>&1 || echo "[targets] fps_pair seed $s FAILED"
 done
 # the paper's mapping sampler (samples along the crossed voxels) beside the fixed-shape band default
 run "targets_synthetic_100f_seed0_voxel_sampler" --synthetic --frames 100 --seed 0 --method voxfusion \

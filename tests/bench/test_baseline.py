@@ -26,7 +26,7 @@ from bench.baseline_tsdf import (  # noqa: E402
 from bench.machine import PeakMemory, machine_info  # noqa: E402
 from voxfusion.core.datasets.frame import BaseCapture, RGBDFrame  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
-from voxfusion.core.errors import ConfigError  # noqa: E402
+from voxfusion.core.errors import ConfigError, ValidationError  # noqa: E402
 from voxfusion.core.eval import MeshEvalConfig, TrajectoryEvalConfig, compute_ate, compute_mesh_metrics  # noqa: E402
 from voxfusion.core.trajectory import read_tum_trajectory  # noqa: E402
 
@@ -290,3 +290,35 @@ def test_run_py_with_a_depth_gap_runs_and_evaluates(tmp_path):
     assert result["capture"]["depth_gap"] == {"start": 2, "frames": 2}
     ours = result["methods"]["voxfusion"]
     assert ours["n_frames"] == 6 and ours["extra"]["frames_lost"] == 2 and ours["ate_aligned"]["rmse_m"] < 0.05
+
+
+def test_the_baseline_a_frame_at_a_time_is_the_whole_run(synthetic, result):
+    """TSDFBaselineRun.step is what run_tsdf_baseline loops over: the same poses (Open3D's parallel ICP sums differ
+    between runs by ~2.5 mm here, whichever way it is called), and a time per frame."""
+    from bench.baseline_tsdf import TSDFBaselineRun
+
+    run = TSDFBaselineRun(FAST)
+    with run.quiet():
+        ms = [run.step(frame) for frame in synthetic.frames(0, len(synthetic))]
+        with pytest.raises(ValidationError, match="extract_mesh"):
+            run.result(None)
+        run.extract_mesh()
+    assert ms[0] > 0 and all(m > 0 for m in ms)
+    np.testing.assert_allclose(run.trajectory.T_world_cam, result.trajectory.T_world_cam, rtol=0, atol=0.01)
+
+
+def test_fps_pair_interleaves_both_methods_and_reports_their_ratio(tmp_path):
+    from bench.fps_pair import block_ratios, interleave, main
+
+    seen = []
+    ms_a, ms_b = interleave([0, 1, 2, 3], lambda f: seen.append(("a", f)), lambda f: seen.append(("b", f)))
+    assert seen == [("a", 0), ("b", 0), ("b", 1), ("a", 1), ("a", 2), ("b", 2), ("b", 3), ("a", 3)]
+    assert ms_a.shape == ms_b.shape == (4,)
+    np.testing.assert_allclose(block_ratios(np.array([1.0, 1, 2, 2, 9]), np.array([2.0, 2, 2, 2, 1]), 2), [2.0, 1.0])
+    np.testing.assert_allclose(block_ratios(np.array([1.0, 3]), np.array([2.0, 2]), 10), [1.0])
+    assert main(["--synthetic", "--frames", "4", "--width", "64", "--height", "48", "--vf-set",
+                 "mapping.first_frame_iters=5", "mapping.iters=2", "--out", str(tmp_path)]) == 0
+    doc = json.loads((tmp_path / "fps_pair_synthetic_64x48_4f_seed0.json").read_text())
+    assert doc["voxfusion"]["fps"] > 0 and doc["baseline"]["fps"] > 0 and doc["machine"]["cpu_model"]
+    assert doc["fps_ratio"] == pytest.approx(doc["voxfusion"]["fps"] / doc["baseline"]["fps"])
+    assert doc["ate_cm"]["voxfusion"] < 5 and doc["ate_cm"]["baseline"] < 5
