@@ -31,7 +31,7 @@ from .eval.mesh import MeshEvalConfig, evaluate_mesh_against_gt, load_mesh, view
 from .eval.phantom import phantom_for_capture
 from .eval.photometric import photometric_check
 from .eval.report import write_json
-from .eval.trajectory import TrajectoryEvalConfig, compute_ate
+from .eval.trajectory_error import TrajectoryEvalConfig, compute_ate
 from .eval.trajectory_plot import plot_trajectory
 from .geometry import invert_pose
 from .mesh import export_mesh, write_scene_views

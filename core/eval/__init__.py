@@ -39,7 +39,7 @@ from .phantom import (
 )
 from .render_probe import DepthProbe, add_depth_outliers, anchor_first_pose, depth_probe, oblique_rotation
 from .report import format_table, to_jsonable, write_json
-from .trajectory import (
+from .trajectory_error import (
     AlignMode,
     ATEResult,
     RPEResult,

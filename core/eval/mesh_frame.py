@@ -19,7 +19,7 @@ __all__ = ["MeshWorld", "MeshFrame", "sidecar_path", "read_mesh_frame", "transfo
 def transform_mesh(mesh: trimesh.Trimesh, T: np.ndarray, scale: float = 1.0) -> trimesh.Trimesh:
     """A copy of ``mesh`` with every vertex ``v`` moved to ``R (scale * v) + t`` (``T = [R t; 0 1]``).
 
-    This is the convention of :class:`~.trajectory.ATEResult` (``T_align``, ``scale``), so the estimate's
+    This is the convention of :class:`~.trajectory_error.ATEResult` (``T_align``, ``scale``), so the estimate's
     mesh can follow its trajectory's alignment onto the reference.
 
     Args:

@@ -6,8 +6,8 @@ e.g. ARKit's +y, a first-camera world's -y, a motion-capture world's +z) is the 
 are drawn as seen from above (right-handed: looking down, never mirrored). The **height** panel is the position
 along that axis (signed so that up is up) over time in seconds from the first pose.
 
-With a reference, the estimate is moved onto it exactly as the ATE does (:func:`.trajectory.compute_ate` with
-the same :class:`.trajectory.TrajectoryEvalConfig`: Umeyama SE(3) by default, first-pose anchoring for
+With a reference, the estimate is moved onto it exactly as the ATE does (:func:`.trajectory_error.compute_ate` with
+the same :class:`.trajectory_error.TrajectoryEvalConfig`: Umeyama SE(3) by default, first-pose anchoring for
 ``align="none"``), so the picture shows the error the ATE figure measures; the title gives that figure.
 
 Drawn with matplotlib's Agg canvas directly (no ``pyplot``, no global backend switch: safe in servers and
@@ -31,7 +31,7 @@ import numpy as np
 
 from ..errors import ShapeError, ValidationError
 from ..trajectory import Trajectory
-from .trajectory import ATEResult, TrajectoryEvalConfig, compute_ate
+from .trajectory_error import ATEResult, TrajectoryEvalConfig, compute_ate
 
 __all__ = ["PlotAxes", "plot_axes", "plot_trajectory"]
 
