@@ -59,7 +59,7 @@ from voxfusion.core.eval import (  # noqa: E402
     views_from_frames,
     write_json,
 )
-from voxfusion.core.mesh.frame import camera_up_forward  # noqa: E402
+from voxfusion.core.mesh.mesh_frame import camera_up_forward  # noqa: E402
 from voxfusion.core.run import write_mesh_views  # noqa: E402
 from voxfusion.core.trajectory import Trajectory, write_tum_trajectory  # noqa: E402
 

@@ -35,7 +35,7 @@ from .eval.trajectory_error import TrajectoryEvalConfig, compute_ate
 from .eval.trajectory_plot import plot_trajectory
 from .geometry import invert_pose
 from .mesh import export_mesh, write_scene_views
-from .mesh.frame import WorldAxes, camera_up_forward
+from .mesh.mesh_frame import WorldAxes, camera_up_forward
 from .slam import SlamStats, SlamSystem
 from .slam_config import VoxFusionConfig
 from .trajectory import Trajectory, write_tum_trajectory
@@ -244,7 +244,7 @@ def write_mesh_views(out_dir: Path, panels: dict[str, trimesh.Trimesh | None], c
 
 
 def reference_world_axes(trajectory: Trajectory) -> WorldAxes:
-    """:class:`.mesh.frame.WorldAxes` of a map built with reference poses (``voxfusion map``)."""
+    """:class:`.mesh.mesh_frame.WorldAxes` of a map built with reference poses (``voxfusion map``)."""
     up, forward = camera_up_forward(trajectory.T_world_cam)
     return WorldAxes("reference", tuple(up.tolist()), tuple(forward.tolist()),
                      invert_pose(trajectory.T_world_cam[0]) if len(trajectory) else None)

@@ -46,7 +46,7 @@ from .host_memory import retain_freed_memory
 from .lie import so3_exp
 from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper, publish_keyframe_poses
 from .mesh import extract_map_mesh
-from .mesh.frame import WorldAxes, camera_up_forward
+from .mesh.mesh_frame import WorldAxes, camera_up_forward
 from .optim import preload as preload_optimizer
 from .render import RenderConfig, RenderedImage, render_depth_image
 from .render_graphs import OcclusionGraphs

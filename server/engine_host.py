@@ -42,7 +42,7 @@ from voxfusion.core.config import config_from_dict
 from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.errors import EngineFailedError, MapNotReadyError
 from voxfusion.core.mesh import mesh_bytes
-from voxfusion.core.mesh.frame import sidecar_path
+from voxfusion.core.mesh.mesh_frame import sidecar_path
 from voxfusion.core.render import RenderedImage
 from voxfusion.core.slam import FrameRecord, MapSnapshot, SlamStats, SlamSystem
 from voxfusion.core.slam_config import VoxFusionConfig

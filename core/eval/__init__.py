@@ -3,6 +3,7 @@ F-score (against the whole and the observed GT), the phantom-surface share (no G
 sidecar, depth L1, the render-back depth probe (and its outlier / pose perturbations), and the table / JSON
 helpers the CLI and the benchmarks share, and the trajectory plot (top view and height over time)."""
 
+from ..mesh.mesh_frame import MeshFrame, MeshWorld, read_mesh_frame, sidecar_path
 from .consistency import DepthConsistency, depth_consistency, pair_disagreement
 from .depth import DepthL1Result, depth_l1
 from .mesh import (
@@ -21,15 +22,7 @@ from .mesh import (
     views_from_capture,
     views_from_frames,
 )
-from .mesh_frame import (
-    AlignmentLever,
-    MeshFrame,
-    MeshWorld,
-    alignment_lever,
-    read_mesh_frame,
-    sidecar_path,
-    transform_mesh,
-)
+from .mesh_alignment import AlignmentLever, alignment_lever, transform_mesh
 from .phantom import (
     PhantomResult,
     auto_stride_px,

@@ -1,7 +1,7 @@
 """A picture of a trajectory: top view and height over time, the estimate beside the reference.
 
 ``voxfusion run`` writes it as ``trajectory.png`` next to its other outputs. The **top view** shows the two
-horizontal axes of the world: the world axis closest to "up" (:attr:`~voxfusion.core.mesh.frame.WorldAxes.up_m`,
+horizontal axes of the world: the world axis closest to "up" (:attr:`~voxfusion.core.mesh.mesh_frame.WorldAxes.up_m`,
 e.g. ARKit's +y, a first-camera world's -y, a motion-capture world's +z) is the vertical one and the other two
 are drawn as seen from above (right-handed: looking down, never mirrored). The **height** panel is the position
 along that axis (signed so that up is up) over time in seconds from the first pose.

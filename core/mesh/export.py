@@ -20,7 +20,7 @@ from trimesh.exchange.obj import export_obj
 from trimesh.exchange.ply import export_ply
 
 from ..errors import ValidationError
-from .frame import WorldAxes, write_mesh_frame
+from .mesh_frame import WorldAxes, write_mesh_frame
 
 __all__ = ["MESH_FORMATS", "MeshFormat", "mesh_bytes", "export_mesh"]
 

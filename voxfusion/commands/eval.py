@@ -11,7 +11,7 @@ Examples::
 Mesh evaluation, in order:
 
 1. ``<mesh>.frame.json`` (if present) brings the file's coordinates into the session's world frame
-   (``T_world_file``) and says what that world is (:mod:`voxfusion.core.eval.mesh_frame`).
+   (``T_world_file``) and says what that world is (:mod:`voxfusion.core.mesh.mesh_frame`).
 2. With ``--capture``: the phantom-surface share, the mesh's area farther than ``--phantom-cm`` from the
    capture's depth placed with ``--traj`` (the poses the mesh was built with) or, without it, the capture's
    reference poses.

@@ -1,6 +1,6 @@
 """Moving a mesh into another frame before it is evaluated: trajectory alignment applied to a mesh, and how
 far that alignment's uncertainty can move it. The ``<mesh file>.frame.json`` sidecar (which frame a mesh
-file's coordinates are in) is defined in :mod:`voxfusion.core.mesh.frame` and re-exported here.
+file's coordinates are in) is :mod:`voxfusion.core.mesh.mesh_frame`.
 """
 
 from __future__ import annotations
@@ -11,10 +11,8 @@ import numpy as np
 import trimesh
 
 from ..errors import ValidationError
-from ..mesh.frame import MeshFrame, MeshWorld, read_mesh_frame, sidecar_path
 
-__all__ = ["MeshWorld", "MeshFrame", "sidecar_path", "read_mesh_frame", "transform_mesh", "AlignmentLever",
-           "alignment_lever"]
+__all__ = ["transform_mesh", "AlignmentLever", "alignment_lever"]
 
 def transform_mesh(mesh: trimesh.Trimesh, T: np.ndarray, scale: float = 1.0) -> trimesh.Trimesh:
     """A copy of ``mesh`` with every vertex ``v`` moved to ``R (scale * v) + t`` (``T = [R t; 0 1]``).
