@@ -39,6 +39,7 @@ import torch
 import trimesh
 
 from ..errors import ShapeError, ValidationError
+from ..voxels.morton import unique_rows
 from .cases import (
     CENTRE_CODE,
     CORNER_OFFSETS,
@@ -347,7 +348,7 @@ def _near_surface_cells(coords: torch.Tensor, c: int, cell_m: float, query_fn: Q
         near |= neg & pos
         v, x, y, z = near.nonzero(as_tuple=True)
         out.append(part[v] * c + torch.stack([x, y, z], 1))
-    return torch.unique(torch.cat(out), dim=0)  # sorted (lexicographically), as the fine pass expects
+    return unique_rows(torch.cat(out))  # sorted (lexicographically), as the fine pass expects
 
 
 def _filter_faces(faces: torch.Tensor, vertices: torch.Tensor, cell_centre: torch.Tensor, step_m: float,
@@ -512,7 +513,7 @@ def _check_coords(voxel_coords: torch.Tensor | np.ndarray, device: torch.device)
     if voxel_coords.dim() != 2 or voxel_coords.shape[1] != 3:
         raise ShapeError("voxel_coords", tuple(voxel_coords.shape), "[M, 3]")
     coords = voxel_coords.to(device=device, dtype=torch.long)
-    return torch.unique(coords, dim=0) if len(coords) else coords
+    return unique_rows(coords)
 
 
 def _pack(lattice: torch.Tensor) -> torch.Tensor:

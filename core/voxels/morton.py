@@ -23,6 +23,7 @@ __all__ = [
     "morton_encode_planar",
     "unique_bounded",
     "unique_codes",
+    "unique_rows",
     "check_coord_range",
     "find_sorted",
     "merge_sorted",
@@ -119,6 +120,29 @@ def unique_bounded(values: torch.Tensor, bound: int, max_dense: int = 1 << 24) -
     occupied = torch.zeros(bound + 1, dtype=torch.bool, device=values.device)  # the last flag: out of range
     occupied[torch.where(ok, values, torch.full_like(values, bound))] = True
     return torch.nonzero(occupied[:bound]).squeeze(1)
+
+
+def unique_rows(rows: torch.Tensor, return_inverse: bool = False
+                ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """``torch.unique(rows, dim=0)`` (and ``return_inverse``) for integer rows ``[N, 3]``: the same sorted rows
+    ``[U, 3]`` (and inverse ``[N]``), through one int64 key per row (mixed radix over the rows' ranges, which sorts
+    as the rows do) where those ranges fit in 62 bits, else the reference. Waits for the device once (the ranges).
+    2.2 M rows (1.7 M distinct, with inverse) on the 2-core AMD EPYC: 0.13 s against 4.3 s for the reference and
+    4.1 s for ``np.unique(axis=0)``."""
+    if rows.dim() != 2 or rows.shape[1] != 3:
+        raise ShapeError("rows", tuple(rows.shape), "[N, 3]")
+    if rows.shape[0] == 0:
+        out = rows.clone()
+        return (out, torch.zeros(0, dtype=torch.int64, device=rows.device)) if return_inverse else out
+    lo = rows.min(0).values
+    sx, sy, sz = (int(e) for e in (rows.max(0).values - lo + 1).tolist())
+    if float(sx) * float(sy) * float(sz) >= 2.0**62:
+        return torch.unique(rows, dim=0, return_inverse=return_inverse)
+    rel = rows.to(torch.int64) - lo
+    packed = torch.unique((rel[:, 0] * sy + rel[:, 1]) * sz + rel[:, 2], return_inverse=return_inverse)
+    keys, inverse = packed if return_inverse else (packed, None)
+    uniq = (torch.stack([keys // (sy * sz), (keys // sz) % sy, keys % sz], 1) + lo).to(rows.dtype)
+    return (uniq, inverse) if return_inverse else uniq
 
 
 def unique_codes(ijk: torch.Tensor, max_dense_cells: int = 1 << 22) -> torch.Tensor:

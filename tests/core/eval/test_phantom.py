@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
 from voxfusion.core.datasets.frame import RGBDFrame
@@ -133,12 +134,13 @@ def test_phantom_for_capture_uses_the_trajectory_or_the_reference_poses():
 
 
 def test_voxel_keys_are_deduplicated_as_rows_are():
-    from voxfusion.core.eval.phantom import _unique_rows
+    from voxfusion.core.voxels.morton import unique_rows
 
     rng = np.random.default_rng(0)
     keys = rng.integers(-40, 40, (5000, 3))
     keys = np.concatenate([keys, keys[:1500], [[2**40, -(2**40), 0]]])  # repeats; a span past 62 bits: the fallback
     for k in (keys[:-1], keys, keys[:0]):
-        uniq, inv = _unique_rows(k)
+        uniq, inv = unique_rows(torch.from_numpy(k.reshape(-1, 3)), return_inverse=True)
         expected, expected_inv = np.unique(k.reshape(-1, 3), axis=0, return_inverse=True)
-        assert np.array_equal(uniq, expected) and np.array_equal(inv, expected_inv.reshape(-1))
+        assert np.array_equal(uniq.numpy(), expected) and np.array_equal(inv.numpy(), expected_inv.reshape(-1))
+        assert torch.equal(unique_rows(torch.from_numpy(k.reshape(-1, 3))), uniq)
