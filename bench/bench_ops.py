@@ -24,9 +24,10 @@ first 10 frames with the ``cpu`` sizes; then:
   data-dependent shapes and with the fixed-shape walk (:func:`~voxfusion.core.render.render_rays_fixed`, a GPU's
   default); "per iteration" is per image there. Each row also reads one small tensor back with ``.tolist()`` (the
   chunk sizes; the sample count with the walk's doubt flag), which runs no operator on a CPU and is not counted;
-  ``... static budget (one CUDA graph)``: the same image as :func:`~voxfusion.core.render.render_rays_static`, the body
-  of its CUDA graph (``render.cuda_graphs``), with budgets measured on a fixed-walk render: no read-back; its one
-  ``nonzero_static`` (which waits for nothing on CUDA from PyTorch 2.6) counted apart;
+  ``... static budget (one CUDA graph)``: the same image as
+  :func:`~voxfusion.core.render.volume.render_rays_static`, the body of its CUDA graph (``render.cuda_graphs``),
+  with budgets measured on a fixed-walk render: no read-back; its one ``nonzero_static`` (which waits for nothing
+  on CUDA from PyTorch 2.6) counted apart;
 * ``fuse/7 frames in turn`` and ``... in one pass``: a realtime mapping round's fusion of the 7 frames tracked
   since the last round (what an H100 session fed at 30 Hz fused per round), with ``Mapper.integrate`` per frame and
   with ``Mapper.integrate_batch`` (one allocation, surface-mark and evidence update); "per iteration" is per round
@@ -182,7 +183,11 @@ def main(argv: list[str] | None = None) -> int:
 
     # the occlusion render (256x192 depth, AR) as a GPU runs it: one call of 65536 rays with the GPU's event budget;
     # the walk with data-dependent shapes (the CPU's) and the fixed-shape walk (the GPU's default), depth alone
-    from voxfusion.core import raycast, render
+    try:  # the render package (since 2026-11-28); older checkouts had flat modules
+        from voxfusion.core.render import raycast
+        from voxfusion.core.render import volume as render
+    except ImportError:
+        from voxfusion.core import raycast, render
 
     image = {"render/occlusion 256x192": False, "render/occlusion 256x192 fixed walk": True}
     K = cap[10].K * torch.tensor([[256 / cap.width], [192 / cap.height], [1.0]]).numpy()

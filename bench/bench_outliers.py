@@ -58,7 +58,7 @@ from voxfusion.core.evidence import observe_frame  # noqa: E402
 from voxfusion.core.framedata import frame_to_device  # noqa: E402
 from voxfusion.core.mapping import _backproject  # noqa: E402
 from voxfusion.core.reconstruct import make_mapper  # noqa: E402
-from voxfusion.core.render import render_depth_image  # noqa: E402
+from voxfusion.core.render.volume import render_depth_image  # noqa: E402
 from voxfusion.core.slam_config import VoxFusionConfig, load_preset  # noqa: E402
 from voxfusion.core.voxels import VoxelMap  # noqa: E402
 

@@ -42,8 +42,8 @@ if str(REPO_ROOT) not in sys.path:
 
 import torch  # noqa: E402
 
-import voxfusion.core.raycast as raycast  # noqa: E402
-import voxfusion.core.render as render  # noqa: E402
+import voxfusion.core.render.raycast as raycast  # noqa: E402
+import voxfusion.core.render.volume as render  # noqa: E402
 from bench.machine import machine_info  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.eval.report import write_json  # noqa: E402
@@ -51,7 +51,7 @@ from voxfusion.core.field import FieldConfig  # noqa: E402
 from voxfusion.core.framedata import frame_to_device, sample_pixels  # noqa: E402
 from voxfusion.core.losses import LossConfig  # noqa: E402
 from voxfusion.core.mapping import Mapper, MappingConfig  # noqa: E402
-from voxfusion.core.render import RenderConfig, camera_rays, intersect_voxels, intersect_voxels_reference  # noqa: E402
+from voxfusion.core.render.volume import RenderConfig, camera_rays, intersect_voxels, intersect_voxels_reference  # noqa: E402
 from voxfusion.core.voxels import VoxelMap, morton_encode  # noqa: E402
 from voxfusion.core.voxels.morton import MORTON_MAX_COORD, MORTON_MIN_COORD  # noqa: E402
 

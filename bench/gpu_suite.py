@@ -82,7 +82,7 @@ from voxfusion.core.datasets.frame import RGBDFrame  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.eval.report import format_table, write_json  # noqa: E402
 from voxfusion.core.geometry import scale_intrinsics  # noqa: E402
-from voxfusion.core.render_graphs import OcclusionGraphs  # noqa: E402
+from voxfusion.core.render.graphs import OcclusionGraphs  # noqa: E402
 from voxfusion.core.slam import SlamSystem  # noqa: E402
 from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for  # noqa: E402
 from voxfusion.core.tracking import Tracker, TrackingConfig  # noqa: E402

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 
 from .errors import ConfigError, ShapeError
-from .render import RenderOutput
+from .render.volume import RenderOutput
 
 __all__ = ["LossConfig", "LossTerms", "compute_losses"]
 

@@ -39,7 +39,7 @@ from .lie import perturb_right
 from .losses import LossConfig, LossTerms, compute_losses
 from .mesh.colors import ColorView
 from .optim import adam
-from .render import RenderConfig, band_jitter, band_sample_count, camera_directions, render_band, render_rays
+from .render.volume import RenderConfig, band_jitter, band_sample_count, camera_directions, render_band, render_rays
 from .voxels import VoxelMap
 
 if TYPE_CHECKING:

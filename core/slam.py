@@ -48,8 +48,8 @@ from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_m
 from .mesh import extract_map_mesh
 from .mesh.mesh_frame import WorldAxes, camera_up_forward
 from .optim import preload as preload_optimizer
-from .render import RenderConfig, RenderedImage, render_depth_image
-from .render_graphs import OcclusionGraphs
+from .render.graphs import OcclusionGraphs
+from .render.volume import RenderConfig, RenderedImage, render_depth_image
 from .slam_config import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
 from .trajectory import Trajectory
@@ -778,7 +778,7 @@ class SlamSystem:
         return snap.render(K, T_world_cam, width, height, self.config.render, with_color=with_color)
 
     def _occlusion_graphs(self) -> OcclusionGraphs | None:
-        """The session's :class:`~.render_graphs.OcclusionGraphs` (``render.cuda_graphs`` on a CUDA device), made on
+        """The session's :class:`~.render.graphs.OcclusionGraphs` (``render.cuda_graphs`` on a CUDA device), made on
         first use."""
         if not self.config.render.cuda_graphs or self.device.type != "cuda":
             return None

@@ -39,7 +39,7 @@ from .errors import ConfigError
 from .field import FieldConfig
 from .losses import LossConfig
 from .mapping import MappingConfig
-from .render import RenderConfig
+from .render.volume import RenderConfig
 from .tracking import TrackingConfig
 
 __all__ = [

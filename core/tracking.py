@@ -40,7 +40,7 @@ from .geometry import invert_pose, nearest_rigid, scale_motion
 from .lie import perturb_right
 from .losses import LossConfig, compute_losses
 from .optim import adam
-from .render import RenderConfig, camera_rays, render_rays
+from .render.volume import RenderConfig, camera_rays, render_rays
 from .tracking_graphs import SolverGraphs
 from .tracking_sdf import (
     DepthReference,

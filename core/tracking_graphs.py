@@ -95,7 +95,7 @@ image width and the baseline, which the capture's key holds)."""
 
 Recorded = LMState | tuple[torch.Tensor | None, ...] | None
 """What a recorded block returns: a solver state, or a tuple of tensors (the occlusion render's,
-:mod:`.render_graphs`)."""
+:mod:`.render.graphs`)."""
 Recorder = Callable[[Callable[[], Recorded]], tuple[Recorded, Callable[[], None]]]
 """Records a block: ``record(fn) -> (fn's output, replay)``; after ``replay()`` the output's tensors hold what ``fn``
 would return on the inputs' current values. :class:`CudaGraphRecorder` on a GPU; :func:`record_eagerly` (``fn`` run

@@ -43,7 +43,7 @@ from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.errors import EngineFailedError, MapNotReadyError
 from voxfusion.core.mesh import mesh_bytes
 from voxfusion.core.mesh.mesh_frame import sidecar_path
-from voxfusion.core.render import RenderedImage
+from voxfusion.core.render.volume import RenderedImage
 from voxfusion.core.slam import FrameRecord, MapSnapshot, SlamStats, SlamSystem
 from voxfusion.core.slam_config import VoxFusionConfig
 from voxfusion.core.trajectory import write_tum_trajectory

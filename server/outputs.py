@@ -26,7 +26,7 @@ import numpy as np
 
 from voxfusion.core.errors import ValidationError
 from voxfusion.core.geometry import nearest_rigid
-from voxfusion.core.render import RenderedImage
+from voxfusion.core.render.volume import RenderedImage
 from voxfusion.core.slam import FrameRecord
 from voxfusion.core.trajectory import Trajectory, format_tum_trajectory
 from voxfusion.proto.schemas import PoseOut

@@ -40,7 +40,7 @@ from typing import Any
 from voxfusion.core.checkpoint import atomic_write_bytes
 from voxfusion.core.config import config_to_dict
 from voxfusion.core.errors import EngineFailedError
-from voxfusion.core.render import RenderedImage
+from voxfusion.core.render.volume import RenderedImage
 from voxfusion.core.slam import SlamStats
 from voxfusion.core.slam_config import VoxFusionConfig
 from voxfusion.proto import FrameDecodeError, decode_frame, read_header

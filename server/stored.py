@@ -26,7 +26,7 @@ import trimesh
 from voxfusion.core.checkpoint import LoadedCheckpoint, load_checkpoint
 from voxfusion.core.mesh import mesh_bytes
 from voxfusion.core.mesh.mesh_frame import WorldAxes, read_mesh_frame
-from voxfusion.core.render import RenderedImage
+from voxfusion.core.render.volume import RenderedImage
 from voxfusion.core.slam import MapSnapshot
 from voxfusion.proto.schemas import PoseOut, RenderRequest
 

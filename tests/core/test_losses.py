@@ -8,7 +8,7 @@ import torch
 from voxfusion.core.errors import ConfigError, ShapeError
 from voxfusion.core.field import SDFDecoder
 from voxfusion.core.losses import LossConfig, compute_losses
-from voxfusion.core.render import RenderConfig, RenderOutput, camera_rays, render_rays
+from voxfusion.core.render.volume import RenderConfig, RenderOutput, camera_rays, render_rays
 from voxfusion.core.voxels import VoxelMap
 
 TR = 0.1

@@ -42,7 +42,7 @@ from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.geometry import make_intrinsics
 from voxfusion.core.mapping import _backproject
 from voxfusion.core.reconstruct import make_mapper
-from voxfusion.core.render import camera_rays, intersect_voxels, intersect_voxels_reference, render_depth_image
+from voxfusion.core.render.volume import camera_rays, intersect_voxels, intersect_voxels_reference, render_depth_image
 from voxfusion.core.slam import SlamSystem
 from voxfusion.core.slam_config import load_preset
 from voxfusion.core.voxels import VoxelMap

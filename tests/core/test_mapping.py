@@ -151,7 +151,7 @@ def test_window_rays_match_each_keyframes_own_rays_and_pose_gradients():
     ``train_poses``."""
     from voxfusion.core.framedata import sample_pixels
     from voxfusion.core.mapping import Keyframe, window_rays
-    from voxfusion.core.render import camera_rays
+    from voxfusion.core.render.volume import camera_rays
 
     frames = list(SyntheticCapture(SyntheticConfig(n_frames=3, width=48, height=36)).frames())
     window = [Keyframe.create(frame_to_device(f, "cpu"), torch.as_tensor(f.T_world_cam), fixed=i == 0)
@@ -203,7 +203,7 @@ def test_window_directions_batched_equal_each_keyframes_own():
     window whose frames differ in width (two captures' keyframes) takes the per-keyframe path."""
     from voxfusion.core.framedata import flat_uv
     from voxfusion.core.mapping import Keyframe, _window_directions
-    from voxfusion.core.render import camera_directions
+    from voxfusion.core.render.volume import camera_directions
 
     def keyframes(width: int, height: int, n: int) -> list:
         frames = SyntheticCapture(SyntheticConfig(n_frames=n, width=width, height=height)).frames()

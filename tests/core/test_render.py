@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-import voxfusion.core.raycast as raycast_module
+import voxfusion.core.render.raycast as raycast_module
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import ConfigError, ShapeError
 from voxfusion.core.field import FieldConfig, NeuralField, SDFDecoder
 from voxfusion.core.geometry import backproject_depth, make_intrinsics
-from voxfusion.core.render import (
+from voxfusion.core.render.volume import (
     RenderConfig,
     VoxelHits,
     camera_rays,
@@ -545,7 +545,7 @@ def test_an_image_renders_the_same_in_one_call_or_in_chunks():
 def test_an_image_render_records_no_autograd_graph(monkeypatch, fixed_walk):
     """A whole image (occlusion, evaluation) is inference: its field queries build no autograd graph, even on a map
     and decoder that are training (the CPU path was 10-40 % slower with one)."""
-    from voxfusion.core import render as render_module
+    from voxfusion.core.render import volume as render_module
 
     vm = VoxelMap(0.2, 4)
     vm.allocate(torch.tensor([[0.1, 0.1, 0.5], [0.3, 0.1, 0.5]]))
@@ -671,7 +671,7 @@ def test_voxel_hits_dataclass_shapes_are_consistent():
 
 # ---------------------------------------------------------------- the mapping renderer (fixed samples per ray)
 def test_band_samples_are_sorted_strata_in_front_of_and_inside_the_band():
-    from voxfusion.core.render import band_samples
+    from voxfusion.core.render.volume import band_samples
 
     depth = torch.tensor([2.0, 0.15, 3.0], dtype=torch.float64)
     dn = torch.tensor([1.0, 1.0, 1.3], dtype=torch.float64)
@@ -702,7 +702,7 @@ def test_band_renderer_matches_the_voxel_renderer_on_analytic_surfaces():
     """The fixed-shape mapping renderer against the reference (``render_rays``) where depth is known: at the
     strata midpoints the same surfaces within a millimetre of each other and of the exact depth; jittered
     (training) within a millimetre on average."""
-    from voxfusion.core.render import render_band
+    from voxfusion.core.render.volume import render_band
 
     for cfg, fn, vm, o, d, exact in _analytic_band_scenes():
         ref = render_rays(vm, fn, o, d, cfg)
@@ -723,7 +723,7 @@ def test_band_renderer_with_fewer_band_strata_stays_unbiased():
     """``n_band`` (the CPU preset's ``mapping.band_samples: 5``, 4 cm strata for a 1 cm weight scale): the
     shape follows it, the strata midpoints still render the plane within 2 mm, and jittered strata are noisier
     per ray (centimetres) but unbiased over the rays."""
-    from voxfusion.core.render import render_band
+    from voxfusion.core.render.volume import render_band
 
     for cfg, fn, vm, o, d, exact in _analytic_band_scenes():
         for training in (False, True):
@@ -739,7 +739,7 @@ def test_band_renderer_with_fewer_band_strata_stays_unbiased():
 
 def test_band_renderer_masks_samples_outside_the_map_and_trains_the_map():
     """Samples outside allocated voxels get no weight and no gradient; the rest reach the embeddings."""
-    from voxfusion.core.render import render_band
+    from voxfusion.core.render.volume import render_band
 
     vm = _band_map(plane_sdf, 0.2, 0.4, 0.15)  # a thin sheet of voxels around z = 2
     dec = SDFDecoder()
@@ -755,7 +755,7 @@ def test_band_renderer_masks_samples_outside_the_map_and_trains_the_map():
 
 
 def test_band_renderer_on_an_empty_map_renders_nothing():
-    from voxfusion.core.render import render_band
+    from voxfusion.core.render.volume import render_band
 
     o, d = camera_rays(K_TEST, torch.eye(4), pixels_uv=torch.tensor([[15.5, 11.5]]))
     out = render_band(VoxelMap(0.2), SDFDecoder(), o, d, torch.tensor([2.0]), RenderConfig(), 6, 0.4)
@@ -768,7 +768,7 @@ def test_band_renderer_evaluates_only_samples_inside_the_map_with_the_same_resul
     training loss for the embeddings, the decoder and the rays, on rays whose free-space samples mostly
     leave the map."""
     from voxfusion.core.losses import compute_losses
-    from voxfusion.core.render import render_band
+    from voxfusion.core.render.volume import render_band
 
     vm = _band_map(plane_sdf, 0.2, 0.4, 0.15)  # a thin sheet of voxels around z = 2
     torch.manual_seed(0)

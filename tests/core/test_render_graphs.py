@@ -1,4 +1,4 @@
-"""The occlusion render as one CUDA graph (core/render_graphs.py) against the eager render.
+"""The occlusion render as one CUDA graph (core/render/graphs.py) against the eager render.
 
 On a CPU: the budgeted render (:func:`render_rays_static`) is the fixed-walk render up to float rounding, says when its
 budget is short, never waits for the host and reads only what :class:`StaticMap` copies; :class:`OcclusionGraphs`
@@ -23,7 +23,8 @@ from voxfusion.core.errors import ShapeError, ValidationError
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.geometry import scale_intrinsics
 from voxfusion.core.reconstruct import make_mapper
-from voxfusion.core.render import (
+from voxfusion.core.render.graphs import OcclusionGraphs
+from voxfusion.core.render.volume import (
     RenderBudget,
     camera_rays,
     render_budget,
@@ -31,7 +32,6 @@ from voxfusion.core.render import (
     render_rays_fixed,
     render_rays_static,
 )
-from voxfusion.core.render_graphs import OcclusionGraphs
 from voxfusion.core.slam_config import load_preset
 from voxfusion.core.tracking_graphs import GRID_MAP_TENSORS, record_eagerly
 
@@ -231,7 +231,7 @@ def test_each_camera_has_its_budget_and_no_more_queries_than_its_samples():
 
 
 def test_graphs_and_cameras_are_dropped_least_recently_used_first():
-    from voxfusion.core.render_graphs import MAX_CAMERAS, MAX_GRAPHS
+    from voxfusion.core.render.graphs import MAX_CAMERAS, MAX_GRAPHS
 
     cfg, graphs, snap, decoder, K, T = scene()
     other = scale_intrinsics(K, (W, H), (32, 24))
@@ -302,7 +302,7 @@ def test_a_camera_is_warmed_up_on_the_capture_stream_before_its_first_capture_on
 @pytest.mark.parametrize("error", [torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB"),
                                    RuntimeError("CUDA error: CUBLAS_STATUS_ALLOC_FAILED when calling cublasCreate")])
 def test_running_out_of_memory_renders_eagerly_for_a_while_then_tries_again(caplog, error):
-    from voxfusion.core.render_graphs import OOM_BACKOFF_RENDERS
+    from voxfusion.core.render.graphs import OOM_BACKOFF_RENDERS
 
     calls = []
 

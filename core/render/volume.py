@@ -29,8 +29,9 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from .errors import ConfigError, ShapeError, ValidationError
-from .field import NeuralField, SDFDecoder, SDFField
+from ..errors import ConfigError, ShapeError, ValidationError
+from ..field import NeuralField, SDFDecoder, SDFField
+from ..voxels import VoxelMap
 from .raycast import (
     VoxelHits,
     grid_walk_planes,
@@ -38,7 +39,6 @@ from .raycast import (
     intersect_voxels_fixed,
     intersect_voxels_reference,
 )
-from .voxels import VoxelMap
 
 __all__ = [
     "RenderConfig",

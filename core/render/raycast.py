@@ -32,10 +32,10 @@ from typing import NamedTuple
 
 import torch
 
-from .errors import ShapeError, ValidationError
-from .voxels import VoxelMap
-from .voxels.index_grid import VoxelIndexGrid
-from .voxels.morton import morton_encode_planar
+from ..errors import ShapeError, ValidationError
+from ..voxels import VoxelMap
+from ..voxels.index_grid import VoxelIndexGrid
+from ..voxels.morton import morton_encode_planar
 
 __all__ = ["VoxelHits", "intersect_voxels", "intersect_voxels_fixed", "intersect_voxels_reference", "fixed_walk_planes"]
 
@@ -500,7 +500,7 @@ def intersect_voxels(voxel_map: VoxelMap, origins: torch.Tensor, dirs: torch.Ten
     Args:
         origins, dirs: ``[N, 3]`` world-frame rays (``dirs`` need not be unit; no gradient flows).
         max_distance_m: ``D_max`` in t-units.
-        max_hits: ``M_h`` (see :meth:`~.render.RenderConfig.max_hits_for`).
+        max_hits: ``M_h`` (see :meth:`~.volume.RenderConfig.max_hits_for`).
         t_far: optional ``[N]`` per-ray upper bound on ``t`` (e.g. ``D_gt + tr`` while mapping).
 
     Returns:

@@ -3,15 +3,15 @@
 An occlusion image (256x192, depth alone) is ~350 operators: on an H100 it took 11.3-12.0 ms eager
 (``bench/results/gpu-nvidia-h100-80gb-hbm3-lease-6.json`` to ``-8.json``), where most operators are cheap and each
 costs a launch and the host's time to issue it, plus two read-backs (the samples per ray, the samples inside the map).
-:class:`OcclusionGraphs` records the whole image once, :func:`~.render.render_rays_static` with fixed sizes
-(:class:`~.render.RenderBudget`, measured on the camera's first eager render with some headroom) and no read-back,
+:class:`OcclusionGraphs` records the whole image once, :func:`~.volume.render_rays_static` with fixed sizes
+(:class:`~.volume.RenderBudget`, measured on the camera's first eager render with some headroom) and no read-back,
 over a static copy of the map snapshot (:class:`~.tracking_graphs.StaticMap`, its bounds included) and a static
 pose; a render then copies the newest snapshot and the pose in, replays, and reads back one flag with the image. Where
 the flag says the budget was short (a ray needed more samples, the rays more field queries, or the walk doubts
 itself) that image is rendered eagerly and the budget grows (a new capture at the next render); a new map structure
 (:func:`~.tracking_graphs.map_signature`), image size, intrinsics or option set is captured again.
 
-The eager :func:`~.render.render_depth_image` is the reference: the replayed image equals it up to float rounding
+The eager :func:`~.volume.render_depth_image` is the reference: the replayed image equals it up to float rounding
 (sums over the budget's empty sample columns), which the CPU tests check with :func:`~.tracking_graphs.record_eagerly`
 standing in for the graphs (the same static copies, the same budgets), and the CUDA tests on a GPU. A capture or replay
 that runs out of device memory leaves the next renders eager for a while; any other failure is logged once at WARNING
@@ -32,10 +32,12 @@ import numpy as np
 import torch
 from torch.torch_version import TorchVersion
 
-from .errors import ValidationError, VoxFusionError
-from .field import SDFDecoder
+from ..errors import ValidationError, VoxFusionError
+from ..field import SDFDecoder
+from ..tracking_graphs import Recorder, StaticMap, WarmUp, map_signature, recorder_for
+from ..voxels import VoxelMap
 from .raycast import grid_walk_planes
-from .render import (
+from .volume import (
     RenderBudget,
     RenderConfig,
     RenderedImage,
@@ -48,8 +50,6 @@ from .render import (
     render_rays_fixed,
     render_rays_static,
 )
-from .tracking_graphs import Recorder, StaticMap, WarmUp, map_signature, recorder_for
-from .voxels import VoxelMap
 
 log = logging.getLogger("voxfusion.render")
 
@@ -69,7 +69,7 @@ _NONZERO_STATIC_WAITS = TorchVersion(torch.__version__) < (2, 6)
 
 
 def _pixel_directions(K: np.ndarray | torch.Tensor, width: int, height: int, device: torch.device) -> torch.Tensor:
-    """Camera-frame directions ``[H W, 3]`` float64 of every pixel, row-major (:func:`~.render.camera_rays`' rays)."""
+    """Camera-frame directions ``[H W, 3]`` float64 of every pixel, row-major (:func:`~.volume.camera_rays`' rays)."""
     v, u = torch.meshgrid(torch.arange(height, device=device, dtype=torch.float64),
                           torch.arange(width, device=device, dtype=torch.float64), indexing="ij")
     Kt = _as_tensor(K, "K", (3, 3), device).to(torch.float64)
@@ -78,7 +78,7 @@ def _pixel_directions(K: np.ndarray | torch.Tensor, width: int, height: int, dev
 
 def _image(depth: torch.Tensor, valid: torch.Tensor, color: torch.Tensor | None, width: int,
            height: int) -> RenderedImage:
-    """The flat ``[H W]`` outputs as a :class:`~.render.RenderedImage` of fresh tensors (a replay overwrites them)."""
+    """The flat ``[H W]`` outputs as a :class:`~.volume.RenderedImage` of fresh tensors (a replay overwrites them)."""
     return RenderedImage(depth.reshape(height, width).clone(), None if color is None
                          else color.reshape(height, width, 3).clone(), valid.reshape(height, width).clone())
 
@@ -132,7 +132,7 @@ class _ImageGraph:
 
 
 class OcclusionGraphs:
-    """:func:`~.render.render_depth_image` replayed from CUDA graphs (see the module docstring); one per session.
+    """:func:`~.volume.render_depth_image` replayed from CUDA graphs (see the module docstring); one per session.
 
     Args:
         device: the CUDA device of the maps it will be given.
@@ -141,7 +141,7 @@ class OcclusionGraphs:
             :func:`~.tracking_graphs.record_eagerly`.
 
     :meth:`render` returns None where the eager render must run instead: a map without a dense index grid or too long
-    for the fixed walk; an image of more rays than one eager call renders (:func:`~.render.image_chunk_rays`); for
+    for the fixed walk; an image of more rays than one eager call renders (:func:`~.volume.image_chunk_rays`); for
     :data:`OOM_BACKOFF_RENDERS` renders after the device ran out of memory (logged); after any other failure, for
     good (logged once: :attr:`failed`). Bad input (sizes, shapes) raises as the eager render does. Budgets are kept
     per camera (intrinsics and size). Thread-safe (one render at a time). :attr:`captures` / :attr:`capture_s` count
@@ -172,7 +172,7 @@ class OcclusionGraphs:
     def render(self, voxels: VoxelMap, decoder: SDFDecoder, K: np.ndarray | torch.Tensor,
                T_world_cam: np.ndarray | torch.Tensor, width: int, height: int, config: RenderConfig,
                with_color: bool = True) -> RenderedImage | None:
-        """The image :func:`~.render.render_depth_image` renders (``K`` ``[3, 3]`` for ``width`` x ``height``,
+        """The image :func:`~.volume.render_depth_image` renders (``K`` ``[3, 3]`` for ``width`` x ``height``,
         ``T_world_cam`` ``[4, 4]``), from the graph of this map structure, camera and options, or None."""
         try:
             width, height = operator.index(width), operator.index(height)
