@@ -6,12 +6,26 @@ them take the ``shared_data`` fixture, which skips when the folder is absent (a 
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Under ``pytest -n N`` (``make test``), each worker's torch gets its share of the cores (at least 1): two
+    workers with two intra-op threads each on 2 cores left OpenMP threads spinning for cores the other worker held,
+    and a test that takes 1 s alone took 62 s in the suite (2026-11-28)."""
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if workers:
+        import torch
+
+        from voxfusion.core.cpu import usable_cpu_count
+
+        torch.set_num_threads(max(1, usable_cpu_count() // int(workers)))
 
 
 def shared_data_dir() -> Path:
