@@ -27,6 +27,7 @@ interval; each run of occupied blocks is walked once and keeps the voxels entere
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -125,6 +126,20 @@ def _clip_rays(voxel_map: VoxelMap, origins: torch.Tensor, dirs: torch.Tensor, m
     t0 = torch.where(ok, t0, torch.zeros_like(t0))
     t1 = torch.where(ok, t1, torch.zeros_like(t1))
     return _Rays(o, d, t0, t1, ok)
+
+
+def _walk_clipped(voxel_map: VoxelMap, origins: torch.Tensor, dirs: torch.Tensor, max_distance_m: float,
+                  t_far: torch.Tensor | None, walk: Callable[[_Rays], tuple[torch.Tensor, ...]]) -> VoxelHits:
+    """What both intersections share around their walk: checked rays, none hit in an empty map, the rays clipped
+    (:func:`_clip_rays`), then ``walk(rays) -> (t_entry, t_exit, voxel_idx, hit)`` and ``t`` in ``origins``'
+    dtype."""
+    _check_rays(origins, dirs)
+    n = origins.shape[0]
+    out_dtype = origins.dtype if origins.is_floating_point() else torch.float32
+    if voxel_map.voxel_bounds is None or n == 0:
+        return _empty_hits(n, out_dtype, voxel_map.device)
+    t_entry, t_exit, vidx, hit = walk(_clip_rays(voxel_map, origins, dirs, max_distance_m, t_far))
+    return VoxelHits(t_entry.to(out_dtype), t_exit.to(out_dtype), vidx, hit)
 
 
 def _empty_hits(n: int, dtype: torch.dtype, dev: torch.device) -> VoxelHits:
@@ -243,14 +258,8 @@ def intersect_voxels_reference(voxel_map: VoxelMap, origins: torch.Tensor, dirs:
 
     The specification the fast path is tested against; same arguments and result.
     """
-    _check_rays(origins, dirs)
-    n = origins.shape[0]
-    out_dtype = origins.dtype if origins.is_floating_point() else torch.float32
-    if voxel_map.voxel_bounds is None or n == 0:
-        return _empty_hits(n, out_dtype, voxel_map.device)
-    rays = _clip_rays(voxel_map, origins, dirs, max_distance_m, t_far)
-    t_entry, t_exit, vidx, hit = _intersect_reference(voxel_map, rays, max_hits)
-    return VoxelHits(t_entry.to(out_dtype), t_exit.to(out_dtype), vidx, hit)
+    return _walk_clipped(voxel_map, origins, dirs, max_distance_m, t_far,
+                         lambda rays: _intersect_reference(voxel_map, rays, max_hits))
 
 
 # ---------------------------------------------------------------- fast path
@@ -508,18 +517,10 @@ def intersect_voxels(voxel_map: VoxelMap, origins: torch.Tensor, dirs: torch.Ten
         positive length inside it (grazing an edge or corner exactly is not a hit). Identical to
         :func:`intersect_voxels_reference`.
     """
-    _check_rays(origins, dirs)
-    n = origins.shape[0]
-    out_dtype = origins.dtype if origins.is_floating_point() else torch.float32
-    if voxel_map.voxel_bounds is None or n == 0:
-        return _empty_hits(n, out_dtype, voxel_map.device)
-    rays = _clip_rays(voxel_map, origins, dirs, max_distance_m, t_far)
     grid = voxel_map.index_grid()
-    if grid is None:
-        t_entry, t_exit, vidx, hit = _intersect_reference(voxel_map, rays, max_hits)
-    else:
-        t_entry, t_exit, vidx, hit = _intersect_grid(voxel_map, grid, rays, max_hits)
-    return VoxelHits(t_entry.to(out_dtype), t_exit.to(out_dtype), vidx, hit)
+    return _walk_clipped(voxel_map, origins, dirs, max_distance_m, t_far,
+                         lambda rays: _intersect_reference(voxel_map, rays, max_hits) if grid is None
+                         else _intersect_grid(voxel_map, grid, rays, max_hits))
 
 
 # ---------------------------------------------------------------- fixed shapes
