@@ -48,10 +48,12 @@ from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_m
 from .mesh import extract_map_mesh
 from .mesh.mesh_frame import WorldAxes, camera_up_forward
 from .optim import preload as preload_optimizer
+from .precompiled import preload as preload_precompiled
 from .render.graphs import OcclusionGraphs
 from .render.volume import RenderConfig, RenderedImage, render_depth_image
 from .slam_config import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
+from .tracking_sdf import PRECOMPILED_LINEARIZE
 from .trajectory import Trajectory
 from .voxel_export import voxels_npz_bytes, voxels_ply_bytes
 from .voxels import VoxelMap
@@ -223,6 +225,9 @@ class SlamSystem:
         self.config = config
         self.device = resolve_device(config.device)
         preload_optimizer()  # the map and its optimisers are built with the first frame
+        if config.tracking.method == "sdf" and config.tracking.precompiled and self.device.type == "cpu":
+            preload_precompiled()  # Inductor's loading machinery: ~2 s on a 2-core CPU, once per process
+            PRECOMPILED_LINEARIZE.preload_artifacts()  # the tracker's artifacts: ~0.5 s, before the first frame
         if self.device.type == "cpu":
             retain_freed_memory()  # per-iteration temporaries reuse heap pages (host_memory)
         self._use_color = use_color

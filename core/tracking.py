@@ -40,9 +40,11 @@ from .geometry import invert_pose, nearest_rigid, scale_motion
 from .lie import perturb_right
 from .losses import LossConfig, compute_losses
 from .optim import adam
+from .precompiled import PrecompiledVariants
 from .render.volume import RenderConfig, camera_rays, render_rays
 from .tracking_graphs import SolverGraphs
 from .tracking_sdf import (
+    PRECOMPILED_LINEARIZE,
     DepthReference,
     GrayImages,
     SdfSolverConfig,
@@ -212,6 +214,15 @@ class TrackingConfig:
     6.8 ms and a session's frames ~8 ms less of ~90, but compiling took 7 s per process with torch's on-disk cache
     warm and ~30 s cold, more than a run of a few hundred frames saves (``python bench/bench_accel.py``, variant
     ``tracking compile``; ``make bench-gpu`` measures it on a GPU)."""
+    precompiled: bool = False
+    """``sdf`` method on a CPU: run each solver iteration's residuals and normal equations from ahead-of-time
+    compiled artifacts cached on disk (:mod:`.precompiled`; ``VOXFUSION_PRECOMPILE=0`` turns them off), one per
+    solver stage's options. A session meeting a stage that has none runs it eagerly (the reference) and starts
+    compiling it in a background process at the lowest CPU priority (~20 s of a core each, 3-4 stages per
+    capture), so later sessions load it (before their first frame: ~2 s once per process, then ~0.1 s each). A
+    session never switches mid-run. On in the ``cpu`` preset: on the 2-core AMD EPYC a call at 4096 points took
+    4.2-4.5 against 7.0-8.4 ms eager, and a synthetic-room frame ~10 % less time (eager and precompiled in one
+    process, 2026-11-28; ``python bench/fps_pair.py --warm`` measures it against the TSDF baseline)."""
     cuda_graphs: bool = True
     """``sdf`` method on a CUDA device: replay each solver stage from CUDA graphs (:mod:`.tracking_graphs`), captured
     once per map structure (a snapshot of the same structure is copied in), instead of launching its ~340 operators
@@ -374,6 +385,9 @@ class Tracker:
         """The last frame whose gray images were made, and those images (:meth:`_gray_images`)."""
         self._graphs: SolverGraphs | None = None
         """The ``sdf`` solver's CUDA graphs (``cuda_graphs`` on a CUDA device), made with the first frame there."""
+        self.precompiled: PrecompiledVariants | None = None
+        """The ``sdf`` solver's precompiled evaluations (``precompiled`` on a CPU), made with the first frame there;
+        this tracker's own view, so a session keeps one choice per stage (:mod:`.precompiled`)."""
 
     def set_map(self, voxels: VoxelMap, decoder: SDFDecoder) -> None:
         """Swap in a new frozen map snapshot (a reference assignment; the tracker never waits)."""
@@ -499,7 +513,11 @@ class Tracker:
                 self._graphs = SolverGraphs(dev)
             sol = self._graphs.solve(voxels, decoder, levels, T0, solver, self._reference)
         if sol is None:  # on a CPU, compiled, or where capture failed
-            sol = solve_pose(voxels, decoder, levels, T0, solver, self._reference)  # None unless a term needs one
+            if cfg.precompiled and not cfg.compile and dev.type == "cpu" and self.precompiled is None:
+                self.precompiled = PrecompiledVariants(PRECOMPILED_LINEARIZE)
+            variants = self.precompiled if dev.type == "cpu" else None
+            # the reference is None unless a term needs one
+            sol = solve_pose(voxels, decoder, levels, T0, solver, self._reference, variants)
         # the one read-back of the frame: the pose and the statistics together
         stats = torch.stack([sol.cost, sol.inlier_fraction, sol.median_residual_m, sol.n_valid.to(torch.float64)])
         host = torch.cat([sol.T.reshape(-1), stats]).cpu().numpy()  # float64 throughout

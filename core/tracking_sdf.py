@@ -57,6 +57,7 @@ from .field import NeuralField, SDFDecoder, interpolate_unchecked, local_coords,
 from .framedata import FrameData, sample_valid_pixels
 from .geometry import invert_pose
 from .lie import perturb_right
+from .precompiled import PrecompiledFunction, PrecompiledVariants
 from .voxels import VoxelMap
 
 log = logging.getLogger("voxfusion.tracking")
@@ -64,7 +65,8 @@ log = logging.getLogger("voxfusion.tracking")
 __all__ = ["SdfSolverConfig", "SdfPoints", "SdfSolution", "DepthReference", "GrayImages", "depth_reference",
            "frame_residuals", "photometric_residuals", "gray_images", "smoothed_gray", "gaussian_blur",
            "separable_filter", "sample_points", "solve_pose", "linearize",
-           "linearize_terms", "pose_terms", "PoseTerms", "map_costs", "solve_spd", "solve_spd_elimination"]
+           "linearize_terms", "linearize_signature", "pose_terms", "PoseTerms", "map_costs", "solve_spd",
+           "solve_spd_elimination"]
 
 _GRAY = (0.299, 0.587, 0.114)
 _GRAY_WEIGHTS: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
@@ -593,6 +595,30 @@ def map_costs(voxels: VoxelMap, decoder: SDFDecoder, p_cam: torch.Tensor, T: tor
     return torch.cat(costs)
 
 
+PRECOMPILED_LINEARIZE = PrecompiledFunction(linearize_terms, "tracking.precompiled", log)
+""":func:`linearize_terms` from ahead-of-time compiled artifacts (``tracking.precompiled``; :mod:`.precompiled`), one
+per :func:`linearize_signature`, each called without ``terms`` and checked against the plain function when compiled.
+At 4096 points with every term on the 2-core AMD EPYC (one thread), 4.2-4.5 ms a call against 7.0-8.4 eager."""
+
+
+def linearize_signature(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, cfg: SdfSolverConfig,
+                        reference: DepthReference | None) -> tuple:
+    """What a compiled :func:`linearize_terms` (called without ``terms``) is specialised to besides tensor sizes: the
+    options it reads, which optional inputs exist, the map's voxel size, dtype, device and lookup structure (a dense
+    index grid or sorted codes), whether the points outnumber the map's voxels (a branch of the field's gradient)
+    and the decoder's architecture. Equal signatures can share an artifact; anything
+    missed here is caught by the artifact's own guards (the call then runs eagerly)."""
+    options = (cfg.huber_m, cfg.max_residual_m, cfg.w_color, cfg.huber_color, cfg.w_frame, cfg.frame_max_m,
+               cfg.w_photo, cfg.huber_photo)
+    ref = None if reference is None else (reference.baseline_px, reference.gray is None,
+                                          reference.gray_blurred is None)
+    # the corner-weight gradient gathers per voxel or per point, whichever are fewer (field._corner_weight_grad)
+    points_outnumber_voxels = pts.p_cam.shape[0] > voxels.voxel_vertex_ids.shape[0]
+    return ("linearize_terms", options, pts.gray is None, pts.gray_blurred is None, ref, voxels.voxel_size_m,
+            str(voxels.embeddings.dtype), voxels.device.type, voxels.index_grid() is None, points_outnumber_voxels,
+            repr(decoder.config), decoder.has_plain_gradient, decoder.color_net is None)
+
+
 COMPILED_LINEARIZE = CompiledFunction(linearize_terms, "tracking.compile", log)
 """:func:`linearize_terms` compiled (``tracking.compile``; always called without ``terms``: with it the solver's
 stages share no terms, so that every evaluation runs the compiled graph): one graph per solver stage, shapes
@@ -701,14 +727,21 @@ def _propose(H: torch.Tensor, b: torch.Tensor, lam: torch.Tensor, eye: torch.Ten
 
 
 def _evaluate(voxels: VoxelMap, decoder: SDFDecoder, stage: SolverStage, prior: SolverPrior, T: torch.Tensor,
-              xi: torch.Tensor, terms: PoseTerms | None = None
+              xi: torch.Tensor, terms: PoseTerms | None = None, variants: PrecompiledVariants | None = None
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, PoseTerms]:
-    """The stage's cost and normal equations at ``T`` (:func:`linearize_terms`, compiled with ``compile``) plus the
-    device prior at ``xi``; ``terms``: the stage's terms at ``T`` already known (the previous stage's)."""
+    """The stage's cost and normal equations at ``T`` (:func:`linearize_terms`, compiled with ``compile``, else from
+    ``variants`` of :data:`PRECOMPILED_LINEARIZE` where given) plus the device prior at ``xi``; ``terms``: the stage's
+    terms at ``T`` already known (the previous stage's)."""
     cfg = stage.options
     if terms is None:
-        lin = COMPILED_LINEARIZE if cfg.compile else linearize_terms
-        cost, H, b, terms = lin(voxels, decoder, stage.points, T, cfg, stage.reference)
+        args = (voxels, decoder, stage.points, T, cfg, stage.reference)
+        if cfg.compile:
+            cost, H, b, terms = COMPILED_LINEARIZE(*args)
+        elif variants is not None:
+            signature = linearize_signature(voxels, decoder, stage.points, cfg, stage.reference)
+            cost, H, b, terms = variants(signature, *args)
+        else:
+            cost, H, b, terms = linearize_terms(*args)
     else:
         cost, H, b, terms = linearize_terms(voxels, decoder, stage.points, T, cfg, stage.reference, terms)
     H = H + torch.diag(prior.info) / prior.n_points
@@ -718,25 +751,26 @@ def _evaluate(voxels: VoxelMap, decoder: SDFDecoder, stage: SolverStage, prior: 
 
 
 def stage_start(voxels: VoxelMap, decoder: SDFDecoder, stage: SolverStage, prior: SolverPrior, T: torch.Tensor,
-                xi: torch.Tensor, carried: PoseTerms | None = None) -> LMState:
+                xi: torch.Tensor, carried: PoseTerms | None = None,
+                variants: PrecompiledVariants | None = None) -> LMState:
     """A stage's :class:`LMState` at pose ``T [4, 4]`` (float64) with correction ``xi [6]``: one evaluation (none of
     the field when the stage ``shares`` and ``carried`` holds the previous stage's terms there) and the first step.
     Fresh tensors throughout (``T`` and ``xi`` are copied). No host synchronisation."""
-    cost, H, b, terms = _evaluate(voxels, decoder, stage, prior, T, xi, carried if stage.shares else None)
+    cost, H, b, terms = _evaluate(voxels, decoder, stage, prior, T, xi, carried if stage.shares else None, variants)
     if not stage.keeps:
         terms = terms.residuals()
     lam = torch.full((), stage.options.lambda_init, dtype=torch.float64, device=cost.device)
     return LMState(T.clone(), xi.clone(), cost, H, b, lam, _propose(H, b, lam, prior.eye), terms)
 
 
-def stage_step(voxels: VoxelMap, decoder: SDFDecoder, stage: SolverStage, prior: SolverPrior, state: LMState
-               ) -> LMState:
+def stage_step(voxels: VoxelMap, decoder: SDFDecoder, stage: SolverStage, prior: SolverPrior, state: LMState,
+               variants: PrecompiledVariants | None = None) -> LMState:
     """One Levenberg-Marquardt iteration: evaluate ``state.delta``; keep it where it lowers the cost (and lower
     the damping), else keep the state (and raise it); propose the next step. A new :class:`LMState` of the same
     structure; no host synchronisation."""
     T_c = perturb_right(state.T, state.delta)
     xi_c = state.xi + state.delta
-    cost_c, H_c, b_c, terms_c = _evaluate(voxels, decoder, stage, prior, T_c, xi_c)
+    cost_c, H_c, b_c, terms_c = _evaluate(voxels, decoder, stage, prior, T_c, xi_c, variants=variants)
     better = cost_c < state.cost
     H = torch.where(better, H_c, state.H)
     b = torch.where(better, b_c, state.b)
@@ -774,10 +808,12 @@ def solution(state: LMState, cfg: SdfSolverConfig, iterations: int) -> SdfSoluti
 
 
 def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T_init: torch.Tensor,
-               cfg: SdfSolverConfig, reference: DepthReference | None = None) -> SdfSolution:
+               cfg: SdfSolverConfig, reference: DepthReference | None = None,
+               variants: PrecompiledVariants | None = None) -> SdfSolution:
     """Levenberg-Marquardt from ``T_init [4, 4]`` float64 over ``levels`` (coarse first; the stages of
-    :func:`solver_stages`), eager. Without a ``converge_tol`` it never waits for the device; with one, once every
-    ``check_every`` iterations. :class:`~.tracking_graphs.SolverGraphs` replays the same stages from CUDA graphs."""
+    :func:`solver_stages`), eager (each field evaluation from ``variants``' artifacts where given and available).
+    Without a ``converge_tol`` it never waits for the device; with one, once every ``check_every`` iterations.
+    :class:`~.tracking_graphs.SolverGraphs` replays the same stages from CUDA graphs."""
     prior = solver_prior(cfg, levels, T_init.device)
     T = T_init.to(torch.float64)
     xi = torch.zeros(6, dtype=torch.float64, device=T.device)
@@ -785,8 +821,8 @@ def solve_pose(voxels: VoxelMap, decoder: SDFDecoder, levels: list[SdfPoints], T
     iterations = 0
     for stage in solver_stages(levels, cfg, reference):
         # where the previous stage ended, its field and frame-to-frame terms are this one's (only gray levels differ)
-        state = stage_start(voxels, decoder, stage, prior, T, xi, None if state is None else state.terms)
-        state, n = iterate_stage(state, stage, lambda s, st=stage: stage_step(voxels, decoder, st, prior, s))
+        state = stage_start(voxels, decoder, stage, prior, T, xi, None if state is None else state.terms, variants)
+        state, n = iterate_stage(state, stage, lambda s, st=stage: stage_step(voxels, decoder, st, prior, s, variants))
         T, xi = state.T, state.xi
         iterations += n
     assert state is not None

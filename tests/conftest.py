@@ -14,6 +14,10 @@ import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
+# No precompiled artifacts in tests (loaded or compiled in the background: a run's arithmetic would depend on what
+# an earlier run left in the cache); tests/core/test_precompiled.py turns them on with a cache of its own.
+os.environ["VOXFUSION_PRECOMPILE"] = "0"
+
 
 def pytest_configure(config: pytest.Config) -> None:
     """Under ``pytest -n N`` (``make test``), each worker's torch gets its share of the cores (at least 1): two

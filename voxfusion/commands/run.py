@@ -121,6 +121,21 @@ def register(app: typer.Typer) -> None:
         rows += mesh_metric_rows(result.metrics)
         typer.echo(format_table(rows))
         typer.echo(f"outputs in {out}")
+        note = precompile_note()
+        if note:
+            typer.echo(note)
+
+
+def precompile_note() -> str | None:
+    """One line when this run started compiling the CPU tracker in the background (``tracking.precompiled``), so
+    that the compile jobs left running are no surprise; None otherwise."""
+    from voxfusion.core.tracking_sdf import PRECOMPILED_LINEARIZE
+
+    pending = PRECOMPILED_LINEARIZE.pending()
+    if not pending:
+        return None
+    return (f"compiling the CPU tracker for later runs in the background ({len(pending)} job(s) at the lowest "
+            f"priority, ~20 s of a core each, once per machine; VOXFUSION_PRECOMPILE=0 turns this off)")
 
 
 def consistency_row(name: str, gaps: dict[str, float | None]) -> dict[str, str]:
