@@ -28,6 +28,7 @@ import shutil
 import threading
 import time
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from voxfusion import __version__
@@ -439,7 +440,14 @@ class SessionManager:
                                 resume_required=row.state in _OPEN_STATES, **stats)
 
     def list_sessions(self) -> list[SessionStatusOut]:
-        return [self.status(r.id) for r in self.store.all()]
+        """Every session's status, in the store's order. The open sessions' workers are asked at the same time:
+        each may take its full stats timeout (a worker still importing the engine, or busy), and asked one after
+        another a dozen starting workers held the listing for a minute."""
+        ids = [r.id for r in self.store.all()]
+        if len(ids) <= 1:
+            return [self.status(i) for i in ids]
+        with ThreadPoolExecutor(max_workers=min(16, len(ids)), thread_name_prefix="voxfusion-list") as pool:
+            return list(pool.map(self.status, ids))
 
     def latest_pose(self, session_id: str) -> PoseOut:
         self.get(session_id)

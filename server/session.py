@@ -69,6 +69,9 @@ SKIP_FILE = "skip.json"
 
 _OPEN_STATES = (SessionState.created, SessionState.running, SessionState.finishing)
 _STATS_TIMEOUT_S = 5.0
+_STARTING_STATS_TIMEOUT_S = 0.5
+"""How long a status query waits for a worker that has not answered one yet (still building its engine: seconds,
+tens of seconds when a dozen start at once on a small CPU); its counters are zero until then."""
 _NO_STATS = SlamStats(0, 0, 0, 0, 0, 0, 0, 0.0, float("nan"), 0)
 """The counters of an engine that has not answered yet."""
 _QUERY_TIMEOUT_S = 300.0
@@ -124,6 +127,7 @@ class Session:
         self._generation = 0
         self._worker: SessionWorker | None = None
         self._stats = _NO_STATS
+        self._stats_answered = False  # the current worker has answered a stats query
         self._replay = self._handed = 0  # records the current worker replays / has handed to its engine
         self._start_worker(replay_total)
 
@@ -156,6 +160,7 @@ class Session:
             if wanted:
                 self._latest = None
                 self._stats = _NO_STATS
+                self._stats_answered = False
                 self._replay, self._handed = replay, 0
                 self._worker = worker
                 worker.available(len(self.recorder))
@@ -321,12 +326,14 @@ class Session:
         with self._cond:
             worker = self._worker
             live = self.state in _OPEN_STATES and not self._stop
+            timeout_s = _STATS_TIMEOUT_S if self._stats_answered else _STARTING_STATS_TIMEOUT_S
         if live and worker is not None:
             try:
-                stats = worker.call("stats", timeout_s=_STATS_TIMEOUT_S)
+                stats = worker.call("stats", timeout_s=timeout_s)
                 with self._cond:
                     if worker is self._worker:
                         self._stats = stats
+                        self._stats_answered = True
             except (WorkerLostError, TimeoutError, EngineFailedError):
                 pass  # a restarting or busy worker: its last known counters
         with self._cond:

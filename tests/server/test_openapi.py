@@ -57,7 +57,8 @@ def _fuzz(op, failures: list[str], answered: list[tuple[str, int]]) -> None:
     try:
         run()
     except (Exception, BaseExceptionGroup) as e:  # noqa: BLE001 - hypothesis re-raises the failing example
-        failures.append(f"{label}: {type(e).__name__}: {str(e)[:600]}")
+        causes = "".join(f"\n  caused by {type(c).__name__}: {str(c)[:600]}" for c in getattr(e, "exceptions", ()))
+        failures.append(f"{label}: {type(e).__name__}: {str(e)[:600]}{causes}")
 
 
 def test_every_answer_is_documented_and_no_5xx(live):
