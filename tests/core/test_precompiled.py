@@ -12,13 +12,12 @@ import logging
 import numpy as np
 import pytest
 import torch
+from rooms import mapped_room  # tests/core/rooms.py
 
 from voxfusion.core import precompiled
-from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.lie import se3_exp
 from voxfusion.core.precompiled import PrecompiledFunction, PrecompiledVariants, compile_artifact
-from voxfusion.core.reconstruct import make_mapper
 from voxfusion.core.slam_config import load_preset
 from voxfusion.core.tracking import Tracker, TrackingConfig
 from voxfusion.core.tracking_sdf import (
@@ -122,11 +121,7 @@ def test_the_artifact_check_compares_every_output():
 
 @pytest.fixture(scope="module")
 def room():
-    cap = SyntheticCapture(SyntheticConfig(n_frames=8, width=96, height=72, seed=5))
-    cfg = load_preset("cpu", TINY)
-    mapper = make_mapper(cfg)
-    for f in cap.frames(0, 6):
-        mapper.integrate(frame_to_device(f, "cpu"), f.T_world_cam)
+    cap, _, mapper = mapped_room("cpu", TINY)
     return cap, mapper
 
 

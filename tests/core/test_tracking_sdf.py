@@ -6,6 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from rooms import mapped_room  # tests/core/rooms.py
 
 from voxfusion.core import tracking_sdf
 from voxfusion.core.datasets import open_capture
@@ -45,12 +46,7 @@ def perturb(T, scale=1.0):
 
 @pytest.fixture(scope="module")
 def room():
-    cap = SyntheticCapture(SyntheticConfig(n_frames=8, width=96, height=72, seed=5))
-    cfg = load_preset("cpu-small", TINY)
-    mapper = make_mapper(cfg)
-    for f in cap.frames(0, 6):
-        mapper.integrate(frame_to_device(f, "cpu"), f.T_world_cam)
-    return cap, cfg, mapper
+    return mapped_room("cpu-small", TINY)
 
 
 def tracker_for(cfg, mapper, use_color=True, **kw):
