@@ -33,7 +33,7 @@ _CHILD = """
 import json, resource, sys, time
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.slam import SlamSystem
-from voxfusion.core.slam_config import preset_for
+from voxfusion.core.slam.presets import preset_for
 from voxfusion.core import host_memory
 n, seed = int(sys.argv[1]), int(sys.argv[2])
 capture = SyntheticCapture(SyntheticConfig(n_frames=n, seed=seed))

@@ -67,8 +67,8 @@ from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig 
 from voxfusion.core.eval.report import write_json  # noqa: E402
 from voxfusion.core.framedata import frame_to_device  # noqa: E402
 from voxfusion.core.reconstruct import make_mapper  # noqa: E402
-from voxfusion.core.slam_config import load_preset  # noqa: E402
-from voxfusion.core.tracking import Tracker, TrackingConfig  # noqa: E402
+from voxfusion.core.slam.presets import load_preset  # noqa: E402
+from voxfusion.core.slam.tracking import Tracker, TrackingConfig  # noqa: E402
 
 SYNC_OPS = ("aten::_local_scalar_dense", "aten::nonzero", "aten::nonzero_static", "aten::masked_select",
             "aten::_unique", "aten::_unique2", "aten::unique_dim", "aten::unique_consecutive",
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
                       "sync_ops_per_round": c["sync_ops"]}
     mapper.config = default_config
     # the CPU preset's window in a running session: the newest frame and 3 keyframes (mapper.step on 4 frames)
-    from voxfusion.core.mapping import Keyframe
+    from voxfusion.core.slam.mapping import Keyframe
 
     window = [Keyframe.create(frame_to_device(cap[i], "cpu"), torch.as_tensor(cap[i].T_world_cam), fixed=i == 6)
               for i in (6, 7, 8, 9)]

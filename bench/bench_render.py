@@ -9,7 +9,7 @@ Map: the synthetic room (320x240, seed 0), the back-projected depth of every 5th
 allocated at each voxel size. Scenarios:
 
 * ``intersect/mapping``: 5 frames x 1024 random valid pixels with ``t_far = depth + tr``, the batch of
-  :meth:`~voxfusion.core.mapping.Mapper.step`.
+  :meth:`~voxfusion.core.slam.mapping.Mapper.step`.
 * ``intersect/image``: every pixel of one 320x240 view, no ``t_far``, in 4096-ray chunks as
   :func:`~voxfusion.core.render.render_depth_image` casts them (the whole image is timed).
 * ``lookup``: 200k random points in the map's bounding box -> voxel index (``field.query``, meshing).
@@ -50,8 +50,8 @@ from voxfusion.core.eval.report import write_json  # noqa: E402
 from voxfusion.core.field import FieldConfig  # noqa: E402
 from voxfusion.core.framedata import frame_to_device, sample_pixels  # noqa: E402
 from voxfusion.core.losses import LossConfig  # noqa: E402
-from voxfusion.core.mapping import Mapper, MappingConfig  # noqa: E402
 from voxfusion.core.render.volume import RenderConfig, camera_rays, intersect_voxels, intersect_voxels_reference  # noqa: E402
+from voxfusion.core.slam.mapping import Mapper, MappingConfig  # noqa: E402
 from voxfusion.core.voxels import VoxelMap, morton_encode  # noqa: E402
 from voxfusion.core.voxels.morton import MORTON_MAX_COORD, MORTON_MIN_COORD  # noqa: E402
 

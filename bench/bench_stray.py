@@ -32,7 +32,7 @@ def run_variant(capture_path: Path, preset: str, overrides: list[str], prior: bo
     from voxfusion.core.config import config_to_dict
     from voxfusion.core.datasets import open_capture
     from voxfusion.core.run import run_capture, timing_summary
-    from voxfusion.core.slam_config import load_preset
+    from voxfusion.core.slam.presets import load_preset
 
     name = "prior" if prior else "noprior"
     config = load_preset(preset, [*overrides, f"tracking.use_device_prior={str(prior).lower()}"])

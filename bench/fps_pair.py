@@ -72,7 +72,7 @@ def block_ratios(ms_ours: np.ndarray, ms_base: np.ndarray, block: int) -> np.nda
 def warm_precompiled(config, frames: list) -> None:  # noqa: ANN001
     """Run our engine once over ``frames`` and wait for the compile jobs it started (``tracking.precompiled``), so that
     a run after it finds every artifact its variants need."""
-    from voxfusion.core.tracking_sdf import PRECOMPILED_LINEARIZE
+    from voxfusion.core.slam.tracking_sdf import PRECOMPILED_LINEARIZE
 
     print("[fps_pair] warm-up run (precompiled tracker)", file=sys.stderr, flush=True)
     warm = SlamSystem(config)

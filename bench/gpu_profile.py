@@ -30,7 +30,7 @@ from torch.profiler import ProfilerActivity, profile  # noqa: E402
 
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.slam import SlamSystem  # noqa: E402
-from voxfusion.core.slam_config import preset_for  # noqa: E402
+from voxfusion.core.slam.presets import preset_for  # noqa: E402
 
 HOST_CALLS = ("cudaLaunchKernel", "cudaGraphLaunch", "cudaStreamSynchronize", "cudaMemcpyAsync",
               "cudaGraphInstantiate")

@@ -84,9 +84,9 @@ from voxfusion.core.eval.report import format_table, write_json  # noqa: E402
 from voxfusion.core.geometry import scale_intrinsics  # noqa: E402
 from voxfusion.core.render.graphs import OcclusionGraphs  # noqa: E402
 from voxfusion.core.slam import SlamSystem  # noqa: E402
-from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for  # noqa: E402
-from voxfusion.core.tracking import Tracker, TrackingConfig  # noqa: E402
-from voxfusion.core.tracking_graphs import record_eagerly  # noqa: E402
+from voxfusion.core.slam.presets import VoxFusionConfig, load_preset, preset_for  # noqa: E402
+from voxfusion.core.slam.tracking import Tracker, TrackingConfig  # noqa: E402
+from voxfusion.core.slam.tracking_graphs import record_eagerly  # noqa: E402
 
 SEVENSCENES = REPO_ROOT.parent / "shared" / "data" / "sevenscenes_redkitchen"
 """The 7-Scenes capture of the ``realtime`` section (``--sevenscenes`` names another copy, e.g. the frames
@@ -221,7 +221,7 @@ class RealtimeResult:
     fuse_ms: float | None = None
     """Median host milliseconds the mapping worker spent on a frame it only fused (allocation, surface marks,
     evidence; no iterations: the frames a round catches up on) during the feed: its share of its round's fusion
-    where the engine fuses a round's frames together (:meth:`~voxfusion.core.mapping.Mapper.integrate_batch`)."""
+    where the engine fuses a round's frames together (:meth:`~voxfusion.core.slam.mapping.Mapper.integrate_batch`)."""
     optimize_ms: float | None = None
     """Median host milliseconds of a frame fused and optimised (a round's last frame: its iterations)."""
     frames_per_round: float | None = None

@@ -166,7 +166,7 @@ def run_baseline(capture: Capture, args: argparse.Namespace) -> MethodResult:
 def _voxfusion_config(args: argparse.Namespace, capture: Capture):  # noqa: ANN202
     """The preset ``voxfusion run`` would pick for ``capture`` on this machine (``--vf-config`` overrides the
     name), with the capture's facts (depth range, confidence, colour registration) under it."""
-    from voxfusion.core.slam_config import load_preset, preset_for
+    from voxfusion.core.slam.presets import load_preset, preset_for
 
     overrides = list(args.vf_set or [])
     if args.vf_config:

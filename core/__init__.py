@@ -27,7 +27,8 @@ from .errors import (
     VoxFusionError,
 )
 
-_HEAVY = {"SlamSystem": ".slam", "MapSnapshot": ".slam", "FrameRecord": ".slam", "VoxFusionConfig": ".slam_config"}
+_HEAVY = {"SlamSystem": ".slam.system", "MapSnapshot": ".slam.system", "FrameRecord": ".slam.system",
+          "VoxFusionConfig": ".slam.presets"}
 
 
 def __getattr__(name: str) -> object:

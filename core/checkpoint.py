@@ -17,13 +17,13 @@ import torch
 
 from .config import config_from_dict, config_to_dict
 from .errors import CaptureError, ValidationError
-from .mapping import Mapper, make_mapper
-from .slam_config import VoxFusionConfig
+from .slam.mapping import Mapper, make_mapper
+from .slam.presets import VoxFusionConfig
 from .trajectory import Trajectory
 from .voxels import VoxelMap
 
 if TYPE_CHECKING:
-    from .slam import MapSnapshot
+    from .slam.system import MapSnapshot
 
 __all__ = [
     "CHECKPOINT_VERSION", "LoadedCheckpoint", "save_checkpoint", "load_checkpoint", "atomic_write_bytes",

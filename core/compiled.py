@@ -1,8 +1,8 @@
 """``torch.compile`` on first use, with one clean fall-back: what the engine's compiled options share.
 
 The options (``field.compile``: the decoder MLP; ``tracking.compile``: one iteration of the geometric
-tracker, :func:`~.tracking_sdf.linearize_terms`; ``mapping.compile``: a mapping iteration's renderer and losses,
-:func:`~.mapping.band_loss`, whose backward pass autograd then runs through the compiled graph) each wrap a plain
+tracker, :func:`~.slam.tracking_sdf.linearize_terms`; ``mapping.compile``: a mapping iteration's renderer and losses,
+:func:`~.slam.mapping.band_loss`, whose backward pass autograd then runs through the compiled graph) each wrap a plain
 function in a :class:`CompiledFunction`. The
 plain function stays the reference: tests hold the compiled one to it, and wherever compilation fails (no
 C++ compiler, an unsupported platform or operator) the engine logs one warning naming the option and the

@@ -36,8 +36,8 @@ from .eval.trajectory_plot import plot_trajectory
 from .geometry import invert_pose
 from .mesh import export_mesh, write_scene_views
 from .mesh.mesh_frame import WorldAxes, camera_up_forward
-from .slam import SlamStats, SlamSystem
-from .slam_config import VoxFusionConfig
+from .slam.presets import VoxFusionConfig
+from .slam.system import SlamStats, SlamSystem
 from .trajectory import Trajectory, write_tum_trajectory
 from .voxel_export import export_voxels
 

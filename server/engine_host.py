@@ -45,7 +45,7 @@ from voxfusion.core.mesh import mesh_bytes
 from voxfusion.core.mesh.mesh_frame import sidecar_path
 from voxfusion.core.render.volume import RenderedImage
 from voxfusion.core.slam import FrameRecord, MapSnapshot, SlamStats, SlamSystem
-from voxfusion.core.slam_config import VoxFusionConfig
+from voxfusion.core.slam.presets import VoxFusionConfig
 from voxfusion.core.trajectory import write_tum_trajectory
 from voxfusion.proto import FrameDecodeError, decode_frame
 from voxfusion.proto.recording import RECORDING_FILENAME, RecordingReader

@@ -34,7 +34,7 @@ from typing import Any
 from voxfusion import __version__
 from voxfusion.core.config import apply_overrides, config_from_dict, config_to_dict
 from voxfusion.core.errors import ConfigError, ValidationError
-from voxfusion.core.slam_config import CPU_PRESET, VoxFusionConfig, check_preset_name, load_preset, resolve_device
+from voxfusion.core.slam.presets import CPU_PRESET, VoxFusionConfig, check_preset_name, load_preset, resolve_device
 from voxfusion.proto.api_extra import HealthOut, SessionStatusOut
 from voxfusion.proto.recording import RECORDING_FILENAME, scan_recording
 from voxfusion.proto.schemas import PoseOut, RenderRequest, SessionMode, SessionState, Trajectory

@@ -42,7 +42,7 @@ from voxfusion.core.config import config_to_dict
 from voxfusion.core.errors import EngineFailedError
 from voxfusion.core.render.volume import RenderedImage
 from voxfusion.core.slam import SlamStats
-from voxfusion.core.slam_config import VoxFusionConfig
+from voxfusion.core.slam.presets import VoxFusionConfig
 from voxfusion.proto import FrameDecodeError, decode_frame, read_header
 from voxfusion.proto.api_extra import SessionStatusOut
 from voxfusion.proto.frame_codec import DecodeLimits

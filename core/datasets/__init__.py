@@ -3,7 +3,7 @@
 ``open_capture(path)`` detects the format (TUM RGB-D, 7-Scenes, Replica, ScanNet, Stray Scanner,
 Record3D, 3D Scanner App, Polycam) and returns a lazy :class:`Capture`; the readers can also be used
 directly. Every capture has a ``profile`` (:class:`CaptureProfile`: kind, useful depth range, confidence,
-colour) that the preset chooser (:func:`voxfusion.core.slam_config.preset_for`) follows.
+colour) that the preset chooser (:func:`voxfusion.core.slam.presets.preset_for`) follows.
 """
 
 from .frame import BaseCapture, Capture, RGBDFrame

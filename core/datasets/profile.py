@@ -3,7 +3,7 @@
 Every reader sets a :class:`CaptureProfile` (``capture.profile``): which family of captures it is (the
 ``kind``, which names a preset in ``configs/``), how far its depth can be trusted, whether it has a
 confidence map, and whether it has colour that lines up with the depth image. The engine never reads a
-profile; :func:`voxfusion.core.slam_config.preset_for` turns it into a preset and a few config values,
+profile; :func:`voxfusion.core.slam.presets.preset_for` turns it into a preset and a few config values,
 so a user does not have to know that 7-Scenes colour is not registered or that LiDAR depth ends at 5 m.
 
 Example::

@@ -5,18 +5,18 @@ An occlusion image (256x192, depth alone) is ~350 operators: on an H100 it took 
 costs a launch and the host's time to issue it, plus two read-backs (the samples per ray, the samples inside the map).
 :class:`OcclusionGraphs` records the whole image once, :func:`~.volume.render_rays_static` with fixed sizes
 (:class:`~.volume.RenderBudget`, measured on the camera's first eager render with some headroom) and no read-back,
-over a static copy of the map snapshot (:class:`~.tracking_graphs.StaticMap`, its bounds included) and a static
+over a static copy of the map snapshot (:class:`~..slam.tracking_graphs.StaticMap`, its bounds included) and a static
 pose; a render then copies the newest snapshot and the pose in, replays, and reads back one flag with the image. Where
 the flag says the budget was short (a ray needed more samples, the rays more field queries, or the walk doubts
 itself) that image is rendered eagerly and the budget grows (a new capture at the next render); a new map structure
-(:func:`~.tracking_graphs.map_signature`), image size, intrinsics or option set is captured again.
+(:func:`~..slam.tracking_graphs.map_signature`), image size, intrinsics or option set is captured again.
 
 The eager :func:`~.volume.render_depth_image` is the reference: the replayed image equals it up to float rounding
-(sums over the budget's empty sample columns), which the CPU tests check with :func:`~.tracking_graphs.record_eagerly`
-standing in for the graphs (the same static copies, the same budgets), and the CUDA tests on a GPU. A capture or replay
-that runs out of device memory leaves the next renders eager for a while; any other failure is logged once at WARNING
-and the session renders eagerly from then on. Off by default until measured on a GPU (``make bench-gpu``'s render
-section measures both).
+(sums over the budget's empty sample columns), which the CPU tests check with
+:func:`~..slam.tracking_graphs.record_eagerly` standing in for the graphs (the same static copies, the same budgets),
+and the CUDA tests on a GPU. A capture or replay that runs out of device memory leaves the next renders eager for a
+while; any other failure is logged once at WARNING and the session renders eagerly from then on. Off by default until
+measured on a GPU (``make bench-gpu``'s render section measures both).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from torch.torch_version import TorchVersion
 
 from ..errors import ValidationError, VoxFusionError
 from ..field import SDFDecoder
-from ..tracking_graphs import Recorder, StaticMap, WarmUp, map_signature, recorder_for
+from ..slam.tracking_graphs import Recorder, StaticMap, WarmUp, map_signature, recorder_for
 from ..voxels import VoxelMap
 from .raycast import grid_walk_planes
 from .volume import (
@@ -136,9 +136,9 @@ class OcclusionGraphs:
 
     Args:
         device: the CUDA device of the maps it will be given.
-        record: how an image is recorded (:data:`~.tracking_graphs.Recorder`); None: CUDA graphs on a stream of this
-            object's own, each camera's render warmed up there before its first capture. Tests pass
-            :func:`~.tracking_graphs.record_eagerly`.
+        record: how an image is recorded (:data:`~..slam.tracking_graphs.Recorder`); None: CUDA graphs on a stream of
+            this object's own, each camera's render warmed up there before its first capture. Tests pass
+            :func:`~..slam.tracking_graphs.record_eagerly`.
 
     :meth:`render` returns None where the eager render must run instead: a map without a dense index grid or too long
     for the fixed walk; an image of more rays than one eager call renders (:func:`~.volume.image_chunk_rays`); for

@@ -230,7 +230,7 @@ def test_run_py_picks_the_preset_voxfusion_run_picks():
     import argparse
 
     from bench.run import _RecordingCapture, _voxfusion_config
-    from voxfusion.core.slam_config import preset_for
+    from voxfusion.core.slam.presets import preset_for
 
     capture = SyntheticCapture(SyntheticConfig(n_frames=2, width=48, height=36))
     recorder = _RecordingCapture(capture)

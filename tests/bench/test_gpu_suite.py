@@ -134,7 +134,7 @@ def test_realtime_options_run_the_synthetic_session_again_with_them(tmp_path: Pa
 
 def test_compiled_options_are_compiled_before_a_realtime_feed():
     """After the offline warm-up, a realtime session with the compiled tracker compiles nothing more while fed."""
-    from voxfusion.core import tracking_sdf
+    from voxfusion.core.slam import tracking_sdf
 
     torch._dynamo.reset()
     tracking_sdf.COMPILED_LINEARIZE.reset()

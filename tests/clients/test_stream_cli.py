@@ -167,7 +167,7 @@ def test_an_iphone_capture_gets_the_iphone_preset_at_the_servers_sizes(server, s
     session is built with exactly that configuration (sent as the iphone preset plus the cpu sizes)."""
     from voxfusion.core.config import config_to_dict
     from voxfusion.core.datasets import open_capture
-    from voxfusion.core.slam_config import load_preset
+    from voxfusion.core.slam.presets import load_preset
 
     capture = shared_data / "stray_iphone_lidar"
     out = tmp_path / "iphone"
@@ -200,7 +200,7 @@ def test_composed_presets_travel_as_kind_plus_sizes():
     which the server turns back into exactly the composed configuration (device and mode left to it)."""
     from voxfusion.commands.stream import wire_preset
     from voxfusion.core.config import apply_overrides, config_to_dict
-    from voxfusion.core.slam_config import load_preset
+    from voxfusion.core.slam.presets import load_preset
 
     for name in ("tum+cpu", "iphone+cpu", "replica+paper", "sevenscenes+cpu"):
         kind, settings = wire_preset(name)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.reconstruct import make_mapper
-from voxfusion.core.slam_config import VoxFusionConfig, load_preset
+from voxfusion.core.slam.presets import VoxFusionConfig, load_preset
 
 
 def mapped_room(preset: str, overrides: dict, mapped: int = 6):

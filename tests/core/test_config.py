@@ -63,7 +63,7 @@ def test_parse_overrides_nested():
 
 
 def test_every_shipped_preset_loads():
-    from voxfusion.core.slam_config import KIND_PRESETS, PRESET_ALIASES, load_preset, preset_names
+    from voxfusion.core.slam.presets import KIND_PRESETS, PRESET_ALIASES, load_preset, preset_names
 
     names = preset_names()
     assert {"default", "cpu", "iphone", "paper", *KIND_PRESETS.values()} <= set(names)

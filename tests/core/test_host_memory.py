@@ -23,7 +23,7 @@ def test_a_cpu_engine_applies_the_heap_limits_once():
     code = ("from voxfusion.core import host_memory\n"
             "assert host_memory.retain_freed_memory.cache_info().misses == 0, 'applied at import'\n"
             "from voxfusion.core.slam import SlamSystem\n"
-            "from voxfusion.core.slam_config import load_preset\n"
+            "from voxfusion.core.slam.presets import load_preset\n"
             "SlamSystem(load_preset('cpu'))\n"
             "assert host_memory.retain_freed_memory.cache_info().misses == 1\n"
             "assert host_memory.retain_freed_memory() is True\n")
@@ -34,7 +34,7 @@ def test_a_cpu_engine_applies_the_heap_limits_once():
 def test_the_environment_keeps_the_c_librarys_defaults():
     code = ("from voxfusion.core import host_memory\n"
             "from voxfusion.core.slam import SlamSystem\n"
-            "from voxfusion.core.slam_config import load_preset\n"
+            "from voxfusion.core.slam.presets import load_preset\n"
             "SlamSystem(load_preset('cpu'))\n"
             "assert host_memory.retain_freed_memory.cache_info().misses == 1\n"
             "assert host_memory.retain_freed_memory() is False\n")

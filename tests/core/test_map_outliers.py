@@ -40,11 +40,11 @@ from voxfusion.core.eval.render_probe import (
 from voxfusion.core.evidence import EvidenceConfig, free_space_voxels, observe_frame
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.geometry import make_intrinsics
-from voxfusion.core.mapping import _backproject
 from voxfusion.core.reconstruct import make_mapper
 from voxfusion.core.render.volume import camera_rays, intersect_voxels, intersect_voxels_reference, render_depth_image
 from voxfusion.core.slam import SlamSystem
-from voxfusion.core.slam_config import load_preset
+from voxfusion.core.slam.mapping import _backproject
+from voxfusion.core.slam.presets import load_preset
 from voxfusion.core.voxels import VoxelMap
 
 PROBE_MAX_M = 0.02

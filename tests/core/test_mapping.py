@@ -11,9 +11,9 @@ from voxfusion.core.datasets.transforms import TransformedCapture
 from voxfusion.core.errors import CaptureError, ValidationError
 from voxfusion.core.eval.mesh import MeshEvalConfig, compute_mesh_metrics, views_from_frames
 from voxfusion.core.framedata import frame_to_device
-from voxfusion.core.mapping import Mapper
 from voxfusion.core.reconstruct import map_capture
-from voxfusion.core.slam_config import load_preset
+from voxfusion.core.slam.mapping import Mapper
+from voxfusion.core.slam.presets import load_preset
 
 TINY = ["device=cpu", "mapping.rays_per_frame=256", "mapping.iters=5", "mapping.first_frame_iters=40",
         "field.sdf_hidden=64", "field.color_hidden=64", "mesh_res=4"]
@@ -150,8 +150,8 @@ def test_window_rays_match_each_keyframes_own_rays_and_pose_gradients():
     backward takes the exponential's Jacobian as the identity), none for a fixed keyframe or without
     ``train_poses``."""
     from voxfusion.core.framedata import sample_pixels
-    from voxfusion.core.mapping import Keyframe, window_rays
     from voxfusion.core.render.volume import camera_rays
+    from voxfusion.core.slam.mapping import Keyframe, window_rays
 
     frames = list(SyntheticCapture(SyntheticConfig(n_frames=3, width=48, height=36)).frames())
     window = [Keyframe.create(frame_to_device(f, "cpu"), torch.as_tensor(f.T_world_cam), fixed=i == 0)
@@ -202,8 +202,8 @@ def test_window_directions_batched_equal_each_keyframes_own():
     """The window's camera directions in one batch are each keyframe's :func:`camera_directions` to the bit, and a
     window whose frames differ in width (two captures' keyframes) takes the per-keyframe path."""
     from voxfusion.core.framedata import flat_uv
-    from voxfusion.core.mapping import Keyframe, _window_directions
     from voxfusion.core.render.volume import camera_directions
+    from voxfusion.core.slam.mapping import Keyframe, _window_directions
 
     def keyframes(width: int, height: int, n: int) -> list:
         frames = SyntheticCapture(SyntheticConfig(n_frames=n, width=width, height=height)).frames()
@@ -220,7 +220,7 @@ def test_window_directions_batched_equal_each_keyframes_own():
 
 
 def test_window_colours_mask_rays_without_colour():
-    from voxfusion.core.mapping import _window_colors
+    from voxfusion.core.slam.mapping import _window_colors
 
     depth = [torch.ones(3), torch.ones(2)]
     rgb = torch.rand(3, 3)
@@ -303,7 +303,7 @@ def test_published_keyframe_poses_follow_every_trained_keyframe_and_skip_the_oth
     """After mapping rounds that refine keyframe poses (fused Adam updates the corrections in place), every
     keyframe's published pose is its current pose; a publish with nothing moved recomputes nothing (the same
     arrays), and one after a round recomputes only the keyframes that round trained."""
-    from voxfusion.core.mapping import publish_keyframe_poses
+    from voxfusion.core.slam.mapping import publish_keyframe_poses
 
     cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=2", "mapping.iters=3",
                                            "mapping.keyframe_max_interval=1", "mapping.window_keyframes=1"])
@@ -331,7 +331,7 @@ def test_a_keyframes_pose_before_its_first_publish_is_a_host_copy_of_the_pose_it
     """Other threads read a keyframe's pose before the map that holds it is published (the tracker's reference
     keyframe, a trajectory): that is ``T_base_host``, copied where the keyframe was made (from the caller's host
     array, or from the device for a tensor), never ``T_base`` on the mapping thread's device stream."""
-    from voxfusion.core.mapping import Keyframe
+    from voxfusion.core.slam.mapping import Keyframe
 
     cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=1", "mapping.iters=1"])
     cap = SyntheticCapture(SyntheticConfig(n_frames=3, width=48, height=36))
@@ -361,7 +361,7 @@ def test_compiled_mapping_step_matches_the_eager_fixed_shape_step():
     the same seed draw the same rays and jitter, and reach the same losses, map and keyframe poses."""
     import dataclasses
 
-    from voxfusion.core.mapping import COMPILED_BAND_LOSS
+    from voxfusion.core.slam.mapping import COMPILED_BAND_LOSS
 
     cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=2", "mapping.iters=2",
                                            "mapping.keyframe_max_interval=1", "mapping.compact_samples=false"])
@@ -422,7 +422,7 @@ def test_fusing_frames_in_one_batch_is_fusing_them_in_turn():
 
 
 def test_a_long_batch_is_fused_in_bounded_passes_and_frames_of_other_sizes_alone(monkeypatch):
-    from voxfusion.core import mapping
+    from voxfusion.core.slam import mapping
 
     cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=1", "mapping.iters=1"])
     cap = SyntheticCapture(SyntheticConfig(n_frames=8, width=48, height=36))

@@ -18,9 +18,9 @@ from voxfusion.core import precompiled
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.lie import se3_exp
 from voxfusion.core.precompiled import PrecompiledFunction, PrecompiledVariants, compile_artifact
-from voxfusion.core.slam_config import load_preset
-from voxfusion.core.tracking import Tracker, TrackingConfig
-from voxfusion.core.tracking_sdf import (
+from voxfusion.core.slam.presets import load_preset
+from voxfusion.core.slam.tracking import Tracker, TrackingConfig
+from voxfusion.core.slam.tracking_sdf import (
     SdfSolverConfig,
     _huber_weight,
     depth_reference,
@@ -189,7 +189,7 @@ def test_a_tracker_runs_its_stages_from_artifacts_once_they_exist(room, cache):
     eager, _ = track(False)
     first, tr = track(True)
     assert np.array_equal(first, eager) and tr.precompiled is not None and tr.precompiled.served == 0
-    from voxfusion.core.tracking_sdf import PRECOMPILED_LINEARIZE
+    from voxfusion.core.slam.tracking_sdf import PRECOMPILED_LINEARIZE
 
     assert len(PRECOMPILED_LINEARIZE.pending()) == 1
     assert PRECOMPILED_LINEARIZE.wait(timeout_s=600), "the compile job did not finish"

@@ -15,7 +15,7 @@ from voxfusion.core.datasets import CaptureProfile, open_capture
 from voxfusion.core.datasets.frame import BaseCapture
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig, write_capture
 from voxfusion.core.errors import ConfigError
-from voxfusion.core.slam_config import (
+from voxfusion.core.slam.presets import (
     GPU_SIZES_ON_CPU_FPS,
     PAPER_SIZES_ON_CPU_FPS,
     UNREGISTERED_COLOR_WEIGHT,

@@ -32,8 +32,8 @@ from voxfusion.core.render.volume import (
     render_rays_fixed,
     render_rays_static,
 )
-from voxfusion.core.slam_config import load_preset
-from voxfusion.core.tracking_graphs import GRID_MAP_TENSORS, record_eagerly
+from voxfusion.core.slam.presets import load_preset
+from voxfusion.core.slam.tracking_graphs import GRID_MAP_TENSORS, record_eagerly
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 

@@ -15,8 +15,8 @@ from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.lie import se3_exp
 from voxfusion.core.reconstruct import make_mapper
 from voxfusion.core.slam import SlamSystem, realtime_thread_count
-from voxfusion.core.slam_config import load_preset
-from voxfusion.core.tracking import Tracker, TrackingConfig, predict_pose
+from voxfusion.core.slam.presets import load_preset
+from voxfusion.core.slam.tracking import Tracker, TrackingConfig, predict_pose
 
 TINY = ["device=cpu", "mapping.rays_per_frame=192", "mapping.iters=3", "mapping.first_frame_iters=40",
         "field.sdf_hidden=64", "field.color_hidden=64", "mesh_res=4", "tracking.rays=192", "tracking.iters=15"]
@@ -327,7 +327,7 @@ def test_building_the_engine_imports_what_the_first_frames_optimisers_need():
 
     code = ("import sys\n"
             "from voxfusion.core.slam import SlamSystem\n"
-            "from voxfusion.core.slam_config import load_preset\n"
+            "from voxfusion.core.slam.presets import load_preset\n"
             "assert 'torch._dynamo' not in sys.modules, 'imported before the engine was built'\n"
             "SlamSystem(load_preset('cpu'))\n"
             "assert 'torch._dynamo' in sys.modules\n")
@@ -339,8 +339,8 @@ def test_a_frame_between_two_keyframes_blends_their_corrections_by_time(capture)
     """Keyframe refinements reach the frames between two keyframes as a time-weighted blend of both keyframes'
     corrections: none of the later one's at the earlier keyframe, all of it at the later one, so the
     trajectory does not jump at a keyframe."""
-    from voxfusion.core.mapping import Keyframe, publish_keyframe_poses
     from voxfusion.core.slam import FrameRecord
+    from voxfusion.core.slam.mapping import Keyframe, publish_keyframe_poses
 
     frames = list(capture.frames(0, 2))
     data = [frame_to_device(f, "cpu") for f in frames]
@@ -497,7 +497,7 @@ def test_a_retry_needs_a_gap_a_bad_result_and_none_since_the_last_tracked_frame(
     """When a frame is retried (``tracking.retry_cost_factor``): after lost frames or late (2.5 usual intervals), and
     lost or costing 3 times the recent median; once per gap; never for the frames of a steady run."""
     from voxfusion.core.slam import FrameRecord
-    from voxfusion.core.tracking import TrackResult
+    from voxfusion.core.slam.tracking import TrackResult
 
     slam = SlamSystem(load_preset("cpu", []))
     dt = 1 / 30

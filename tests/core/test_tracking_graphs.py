@@ -1,4 +1,4 @@
-"""The sdf tracker's solver stages as CUDA graphs (core/tracking_graphs.py) against the eager solver.
+"""The sdf tracker's solver stages as CUDA graphs (core/slam/tracking_graphs.py) against the eager solver.
 
 On a CPU: the stages (start and step, every term on) never wait for the host and never copy from it, which is what
 capture requires. With CUDA: the replayed solution is the eager one, a new map snapshot is captured again, and a
@@ -16,14 +16,14 @@ import pytest
 import torch
 from hostwaits import HostData, HostWaits  # tests/core/hostwaits.py: pytest puts this folder on the path
 
-from voxfusion.core import tracking_graphs, tracking_sdf
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.lie import se3_exp
 from voxfusion.core.reconstruct import make_mapper
-from voxfusion.core.slam_config import load_preset
-from voxfusion.core.tracking import Tracker, TrackingConfig
-from voxfusion.core.tracking_sdf import (
+from voxfusion.core.slam import tracking_graphs, tracking_sdf
+from voxfusion.core.slam.presets import load_preset
+from voxfusion.core.slam.tracking import Tracker, TrackingConfig
+from voxfusion.core.slam.tracking_sdf import (
     SdfSolverConfig,
     sample_points,
     solve_pose,

@@ -8,7 +8,6 @@ import pytest
 import torch
 from rooms import mapped_room  # tests/core/rooms.py
 
-from voxfusion.core import tracking_sdf
 from voxfusion.core.datasets import open_capture
 from voxfusion.core.datasets.frame import RGBDFrame
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
@@ -16,9 +15,10 @@ from voxfusion.core.errors import ConfigError, ValidationError
 from voxfusion.core.framedata import FrameData, frame_to_device
 from voxfusion.core.lie import perturb_right, se3_exp
 from voxfusion.core.reconstruct import make_mapper
-from voxfusion.core.slam_config import load_preset
-from voxfusion.core.tracking import Tracker, TrackingConfig, masked_median
-from voxfusion.core.tracking_sdf import (
+from voxfusion.core.slam import tracking_sdf
+from voxfusion.core.slam.presets import load_preset
+from voxfusion.core.slam.tracking import Tracker, TrackingConfig, masked_median
+from voxfusion.core.slam.tracking_sdf import (
     SdfSolverConfig,
     depth_reference,
     frame_residuals,
@@ -490,7 +490,7 @@ def test_sdf_tracker_on_real_7scenes_frames(shared_data):
 def test_spd_solvers_match_lapack_and_step_nowhere_on_a_degenerate_system():
     """The CPU path (Cholesky) and the device path (elimination, what CUDA runs) against LAPACK's solve; a
     matrix that is not positive definite gives no step on the CPU path."""
-    from voxfusion.core.tracking_sdf import solve_spd, solve_spd_elimination
+    from voxfusion.core.slam.tracking_sdf import solve_spd, solve_spd_elimination
 
     g = torch.Generator().manual_seed(0)
     for _ in range(5):

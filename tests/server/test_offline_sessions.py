@@ -9,7 +9,7 @@ from srvutil import TINY, make_scene
 
 from voxfusion.core.config import config_from_dict
 from voxfusion.core.slam import SlamSystem
-from voxfusion.core.slam_config import VoxFusionConfig
+from voxfusion.core.slam.presets import VoxFusionConfig
 from voxfusion.proto import decode_frame
 
 N_FRAMES = 6

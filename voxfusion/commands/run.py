@@ -6,7 +6,7 @@ Example::
     voxfusion run ../shared/data/tum_fr1_desk_9frames --config tum --out out/desk # GPU sizes: warns on a CPU
 
 Without ``--config`` the preset follows the capture's kind and the device
-(:func:`voxfusion.core.slam_config.preset_for`) and the chosen preset is printed with the reason.
+(:func:`voxfusion.core.slam.presets.preset_for`) and the chosen preset is printed with the reason.
 
 writes ``trajectory.txt`` (TUM), ``trajectory.png`` (top view and height over time, against the reference
 poses aligned as for the ATE), ``keyframes.json``, ``mesh.ply``, ``voxels.npz``/``.ply``, ``checkpoint.pt``,
@@ -28,7 +28,7 @@ from voxfusion.core.datasets import open_capture
 from voxfusion.core.datasets.frame import Capture
 from voxfusion.core.eval import format_table
 from voxfusion.core.run import run_capture, timing_summary
-from voxfusion.core.slam_config import VoxFusionConfig, load_preset, preset_for, size_warning
+from voxfusion.core.slam.presets import VoxFusionConfig, load_preset, preset_for, size_warning
 
 from .outputs import claim_output_dir
 
@@ -129,7 +129,7 @@ def register(app: typer.Typer) -> None:
 def precompile_note() -> str | None:
     """One line when this run started compiling the CPU tracker in the background (``tracking.precompiled``), so
     that the compile jobs left running are no surprise; None otherwise."""
-    from voxfusion.core.tracking_sdf import PRECOMPILED_LINEARIZE
+    from voxfusion.core.slam.tracking_sdf import PRECOMPILED_LINEARIZE
 
     pending = PRECOMPILED_LINEARIZE.pending()
     if not pending:

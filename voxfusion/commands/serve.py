@@ -81,7 +81,7 @@ def serve_command(
                                  param_hint="--zenoh-listen")
     if config is not None:  # the server checks it again at startup; here a bad name is one line, not a traceback
         from voxfusion.core.errors import ConfigError
-        from voxfusion.core.slam_config import check_preset_name
+        from voxfusion.core.slam.presets import check_preset_name
 
         try:
             check_preset_name(config)

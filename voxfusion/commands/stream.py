@@ -23,7 +23,7 @@ A new session gets the preset ``voxfusion run`` would pick for the capture (:fun
 capture's kind, e.g. ``iphone`` for Stray / Record3D / 3D Scanner App captures, at the sizes of the server's
 device as ``/healthz`` reports it; printed), unless ``--preset`` names one, and the capture's facts as settings
 under any ``--set`` (``mapping.max_depth_m``, ``mapping.min_confidence``, ``loss.w_color``: what the reader's
-profile says, see :func:`voxfusion.core.slam_config.profile_overrides`).
+profile says, see :func:`voxfusion.core.slam.presets.profile_overrides`).
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def wire_preset(name: str) -> tuple[str, dict[str, Any]]:
         ConfigError: an unknown preset name.
     """
     from voxfusion.core.config import config_to_dict
-    from voxfusion.core.slam_config import load_preset
+    from voxfusion.core.slam.presets import load_preset
 
     kind, plus, _ = str(name).partition("+")
     if not plus:
@@ -103,13 +103,13 @@ def wire_preset(name: str) -> tuple[str, dict[str, Any]]:
 
 def session_preset(capture: Capture, server_device: str | None, sets: list[str] | None = None) -> SessionPreset:
     """The preset for a new session streaming ``capture``: what ``voxfusion run`` picks
-    (:func:`voxfusion.core.slam_config.preset_for`: the capture's kind, composed with ``cpu`` without CUDA)
+    (:func:`voxfusion.core.slam.presets.preset_for`: the capture's kind, composed with ``cpu`` without CUDA)
     for the *server's* device ``server_device`` (``cpu``, ``cuda``; ``None`` where the transport does not
     report it, zenoh: this machine's device is assumed). ``sets`` (``key=value``) are checked on the way.
 
     Example: a Stray Scanner capture streamed to a CPU server gets ``iphone+cpu``.
     """
-    from voxfusion.core.slam_config import KIND_PRESETS, preset_for
+    from voxfusion.core.slam.presets import KIND_PRESETS, preset_for
 
     cuda = server_device is not None and server_device.startswith("cuda")
     if cuda:
@@ -285,7 +285,7 @@ def register(app: typer.Typer) -> None:
             overrides: dict | list[str] | None = set_
             if session is None:
                 from voxfusion.core.config import merge_dicts, parse_overrides
-                from voxfusion.core.slam_config import profile_overrides
+                from voxfusion.core.slam.presets import profile_overrides
 
                 if preset is None:
                     choice = session_preset(cap, client.server_device(), set_)

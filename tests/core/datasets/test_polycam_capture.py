@@ -17,7 +17,7 @@ from voxfusion.core.datasets.polycam import read_polycam_confidence
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import CaptureError, CaptureFormatError, ValidationError
 from voxfusion.core.geometry import GL_TO_CV
-from voxfusion.core.slam_config import preset_for
+from voxfusion.core.slam.presets import preset_for
 
 IMAGE_W, IMAGE_H = 1024, 768  # Polycam's keyframe images; the camera JSON's fx..cy refer to them
 DEPTH_W, DEPTH_H = 256, 192

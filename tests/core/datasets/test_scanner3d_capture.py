@@ -16,7 +16,7 @@ from voxfusion.core.datasets import RGBDFrame, Scanner3DCapture, SlicedCapture, 
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import CaptureError, CaptureFormatError, ValidationError
 from voxfusion.core.geometry import GL_TO_CV
-from voxfusion.core.slam_config import preset_for
+from voxfusion.core.slam.presets import preset_for
 
 COLOR_W, COLOR_H = 1920, 1440  # the app's colour JPEGs; the JSON intrinsics refer to them
 DEPTH_W, DEPTH_H = 256, 192

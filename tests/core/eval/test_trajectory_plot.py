@@ -122,7 +122,7 @@ TINY = ["mapping.first_frame_iters=3", "mapping.iters=1", "mapping.rays_per_fram
 @pytest.mark.parametrize("with_reference", [True, False])
 def test_run_writes_trajectory_png(tmp_path, with_reference):
     from voxfusion.core.run import run_capture
-    from voxfusion.core.slam_config import load_preset
+    from voxfusion.core.slam.presets import load_preset
 
     cap = SyntheticCapture(SyntheticConfig(n_frames=4, width=32, height=24))
     if not with_reference:  # the same frames without their reference poses

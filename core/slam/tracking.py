@@ -33,15 +33,16 @@ from typing import Literal
 import numpy as np
 import torch
 
-from .errors import ConfigError
-from .field import SDFDecoder
-from .framedata import FrameData, sample_pixels
-from .geometry import invert_pose, nearest_rigid, scale_motion
-from .lie import perturb_right
-from .losses import LossConfig, compute_losses
-from .optim import adam
-from .precompiled import PrecompiledVariants
-from .render.volume import RenderConfig, camera_rays, render_rays
+from ..errors import ConfigError
+from ..field import SDFDecoder
+from ..framedata import FrameData, sample_pixels
+from ..geometry import invert_pose, nearest_rigid, scale_motion
+from ..lie import perturb_right
+from ..losses import LossConfig, compute_losses
+from ..optim import adam
+from ..precompiled import PrecompiledVariants
+from ..render.volume import RenderConfig, camera_rays, render_rays
+from ..voxels import VoxelMap
 from .tracking_graphs import SolverGraphs
 from .tracking_sdf import (
     PRECOMPILED_LINEARIZE,
@@ -54,7 +55,6 @@ from .tracking_sdf import (
     sample_points,
     solve_pose,
 )
-from .voxels import VoxelMap
 
 __all__ = ["TrackingConfig", "TrackResult", "Tracker", "device_prior_applies", "predict_pose", "masked_median"]
 
@@ -171,7 +171,7 @@ class TrackingConfig:
     gray image at the point's projection against the point's own gray level, in [0, 1]) relative to the SDF
     residual in metres (0: none). Only at the finest level, once geometry has brought the pose close: at
     every level it pulled fast rotations into wrong minima. It needs colour that lines up with the depth
-    (captures whose reader says otherwise get 0: ``slam_config.profile_overrides``); without colour it is
+    (captures whose reader says otherwise get 0: ``presets.profile_overrides``); without colour it is
     off. Measured on the 2-core Xeon, `cpu` sizes, ATE cm over seeds 0 / 1 / 2 (0 -> 0.1): TUM fr1 desk
     0.32 / 0.30 / 0.28 -> 0.22 / 0.22 / 0.22, fast rotation 0.31 / 0.34 / 0.36 -> 0.26 / 0.25 / 0.34,
     synthetic room 0.16 / 0.27 / 0.20 -> 0.14 / 0.28 / 0.20 (exact rendered depth leaves it little to add);

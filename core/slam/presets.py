@@ -32,14 +32,14 @@ from typing import Literal
 
 import torch
 
-from .config import apply_overrides, config_from_dict, merge_dicts, read_config_file
-from .datasets.frame import Capture
-from .datasets.profile import CAPTURE_KINDS, CaptureProfile
-from .errors import ConfigError
-from .field import FieldConfig
-from .losses import LossConfig
+from ..config import apply_overrides, config_from_dict, merge_dicts, read_config_file
+from ..datasets.frame import Capture
+from ..datasets.profile import CAPTURE_KINDS, CaptureProfile
+from ..errors import ConfigError
+from ..field import FieldConfig
+from ..losses import LossConfig
+from ..render.volume import RenderConfig
 from .mapping import MappingConfig
-from .render.volume import RenderConfig
 from .tracking import TrackingConfig
 
 __all__ = [
@@ -64,7 +64,7 @@ __all__ = [
     "resolve_device",
 ]
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIG_DIR = Path(__file__).resolve().parents[2] / "configs"
 """Folder of the named presets (``configs/`` of the repository / the installed ``voxfusion.configs``)."""
 
 CPU_PRESET = "cpu"

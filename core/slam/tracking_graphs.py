@@ -35,8 +35,10 @@ from collections.abc import Callable
 
 import torch
 
-from .errors import VoxFusionError
-from .field import SDFDecoder
+from ..errors import VoxFusionError
+from ..field import SDFDecoder
+from ..voxels import VoxelMap
+from ..voxels.index_grid import VoxelIndexGrid
 from .tracking_sdf import (
     DepthReference,
     LMState,
@@ -51,8 +53,6 @@ from .tracking_sdf import (
     stage_start,
     stage_step,
 )
-from .voxels import VoxelMap
-from .voxels.index_grid import VoxelIndexGrid
 
 log = logging.getLogger("voxfusion.tracking")
 

@@ -35,28 +35,28 @@ import numpy as np
 import torch
 import trimesh
 
-from .cpu import usable_cpu_count
-from .datasets.frame import RGBDFrame
-from .errors import EngineFailedError, MapNotReadyError, ValidationError
-from .field import SDFDecoder
-from .frame_checks import MIN_INIT_VALID_PIXELS, intrinsics_problem, usable_pose
-from .framedata import FrameData, frame_to_device
-from .geometry import invert_pose, nearest_rigid, scale_motion
-from .host_memory import retain_freed_memory
-from .lie import so3_exp
+from ..cpu import usable_cpu_count
+from ..datasets.frame import RGBDFrame
+from ..errors import EngineFailedError, MapNotReadyError, ValidationError
+from ..field import SDFDecoder
+from ..frame_checks import MIN_INIT_VALID_PIXELS, intrinsics_problem, usable_pose
+from ..framedata import FrameData, frame_to_device
+from ..geometry import invert_pose, nearest_rigid, scale_motion
+from ..host_memory import retain_freed_memory
+from ..lie import so3_exp
+from ..mesh import extract_map_mesh
+from ..mesh.mesh_frame import WorldAxes, camera_up_forward
+from ..optim import preload as preload_optimizer
+from ..precompiled import preload as preload_precompiled
+from ..render.graphs import OcclusionGraphs
+from ..render.volume import RenderConfig, RenderedImage, render_depth_image
+from ..trajectory import Trajectory
+from ..voxel_export import voxels_npz_bytes, voxels_ply_bytes
+from ..voxels import VoxelMap
 from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper, publish_keyframe_poses
-from .mesh import extract_map_mesh
-from .mesh.mesh_frame import WorldAxes, camera_up_forward
-from .optim import preload as preload_optimizer
-from .precompiled import preload as preload_precompiled
-from .render.graphs import OcclusionGraphs
-from .render.volume import RenderConfig, RenderedImage, render_depth_image
-from .slam_config import VoxFusionConfig, resolve_device
+from .presets import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
 from .tracking_sdf import PRECOMPILED_LINEARIZE
-from .trajectory import Trajectory
-from .voxel_export import voxels_npz_bytes, voxels_ply_bytes
-from .voxels import VoxelMap
 
 __all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem", "realtime_thread_count"]
 
@@ -173,7 +173,7 @@ class MapSnapshot:
     def load(cls, path: str | Path, device: torch.device | str = "cpu") -> tuple[MapSnapshot, VoxFusionConfig]:
         """The map of a checkpoint (:func:`.checkpoint.save_checkpoint`) and its configuration; checkpoints
         keep no keyframe images, so meshes of a loaded map take their colours from the colour head."""
-        from .checkpoint import load_checkpoint
+        from ..checkpoint import load_checkpoint
 
         ckpt = load_checkpoint(path, device)
         return cls.of(ckpt.mapper), ckpt.config
@@ -181,7 +181,7 @@ class MapSnapshot:
     def save(self, path: str | Path, config: VoxFusionConfig, trajectory: Trajectory | None = None) -> Path:
         """Write this map (voxels, decoder, keyframe poses) with ``config`` and ``trajectory`` as an atomic
         checkpoint (:func:`.checkpoint.save_checkpoint`); any thread may save a snapshot."""
-        from .checkpoint import save_checkpoint
+        from ..checkpoint import save_checkpoint
 
         return save_checkpoint(path, self, config, trajectory)
 

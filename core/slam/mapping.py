@@ -29,21 +29,21 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from .compiled import CompiledFunction
-from .depth_filter import DepthFilterConfig
-from .errors import ConfigError, ValidationError
-from .evidence import EvidenceConfig, observe_frames
-from .field import FieldConfig, SDFDecoder, query
-from .framedata import FrameData, flat_uv, sample_valid_pixels
-from .lie import perturb_right
-from .losses import LossConfig, LossTerms, compute_losses
-from .mesh.colors import ColorView
-from .optim import adam
-from .render.volume import RenderConfig, band_jitter, band_sample_count, camera_directions, render_band, render_rays
-from .voxels import VoxelMap
+from ..compiled import CompiledFunction
+from ..depth_filter import DepthFilterConfig
+from ..errors import ConfigError, ValidationError
+from ..evidence import EvidenceConfig, observe_frames
+from ..field import FieldConfig, SDFDecoder, query
+from ..framedata import FrameData, flat_uv, sample_valid_pixels
+from ..lie import perturb_right
+from ..losses import LossConfig, LossTerms, compute_losses
+from ..mesh.colors import ColorView
+from ..optim import adam
+from ..render.volume import RenderConfig, band_jitter, band_sample_count, camera_directions, render_band, render_rays
+from ..voxels import VoxelMap
 
 if TYPE_CHECKING:
-    from .slam_config import VoxFusionConfig
+    from .presets import VoxFusionConfig
 
 __all__ = ["MappingConfig", "Keyframe", "MappingStep", "Mapper", "make_mapper", "publish_keyframe_poses", "band_loss"]
 
@@ -596,7 +596,7 @@ class Mapper:
     def extract_mesh(self, mesh_res: int = 20, support: bool = True,  # noqa: ANN201 - trimesh.Trimesh
                      colors: str = "images"):
         """Triangle mesh of this mapper's map as it is now (:meth:`.slam.MapSnapshot.mesh`, the one mesh path)."""
-        from .slam import MapSnapshot
+        from .system import MapSnapshot
 
         return MapSnapshot.of(self).mesh(mesh_res, support, colors)
 
@@ -605,7 +605,7 @@ def make_mapper(config: VoxFusionConfig, has_color: bool = True, device: torch.d
     """The one way a :class:`Mapper` is built from a run's configuration (SLAM, known-pose mapping, checkpoint
     loading): on ``device`` (default: the configured one); the colour head is dropped for depth-only captures
     (``has_color=False``)."""
-    from .slam_config import resolve_device
+    from .presets import resolve_device
 
     field_cfg = config.field if has_color else dataclasses.replace(config.field, use_color=False)
     return Mapper(config.voxel_size_m, field_cfg, config.render, config.loss, config.mapping,
