@@ -14,7 +14,12 @@ import numpy as np
 from .errors import CaptureFormatError, ShapeError
 from .geometry import pose_from_tum, pose_to_tum
 
-__all__ = ["Trajectory", "read_tum_trajectory", "write_tum_trajectory", "format_tum_trajectory"]
+__all__ = ["Trajectory", "read_tum_trajectory", "write_tum_trajectory", "format_tum_trajectory", "interpolate_pose",
+           "MAX_INTERPOLATION_GAP_S"]
+
+MAX_INTERPOLATION_GAP_S = 0.1
+"""Poses are interpolated only between samples at most this far apart (motion-capture dropouts are left unposed
+rather than bridged)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -39,6 +44,17 @@ class Trajectory:
 
     def __len__(self) -> int:
         return int(self.timestamps_s.shape[0])
+
+    def at(self, t_s: np.ndarray, max_gap_s: float = MAX_INTERPOLATION_GAP_S) -> Trajectory:
+        """This trajectory's poses at the times ``t_s [M]`` (:func:`interpolate_pose`; sorted timestamps), leaving
+        out the times it does not cover (outside its span, or between samples more than ``max_gap_s`` apart)."""
+        kept, poses = [], []
+        for t in np.asarray(t_s, dtype=np.float64).reshape(-1):
+            T = interpolate_pose(self.timestamps_s, self.T_world_cam, float(t), max_gap_s)
+            if T is not None:
+                kept.append(t)
+                poses.append(T)
+        return Trajectory(np.asarray(kept, dtype=np.float64), np.stack(poses) if poses else np.zeros((0, 4, 4)))
 
     @property
     def positions(self) -> np.ndarray:
@@ -95,3 +111,28 @@ def write_tum_trajectory(path: str | Path, traj: Trajectory) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(format_tum_trajectory(traj))
     return path
+
+
+def interpolate_pose(ts: np.ndarray, T: np.ndarray, t: float, max_gap_s: float = MAX_INTERPOLATION_GAP_S
+                     ) -> np.ndarray | None:
+    """The pose at time ``t`` from samples ``ts [N]`` (sorted, seconds) / ``T [N, 4, 4]``: linear in translation,
+    slerp in rotation between the two bracketing samples; None outside ``[ts[0], ts[-1]]`` or across a gap longer
+    than ``max_gap_s``."""
+    if len(ts) == 0 or t < ts[0] or t > ts[-1]:
+        return None
+    j1 = int(np.searchsorted(ts, t, side="left"))
+    if ts[j1] == t:
+        return T[j1].copy()
+    j0 = j1 - 1
+    gap = ts[j1] - ts[j0]
+    if gap > max_gap_s:
+        return None
+    a = (t - ts[j0]) / gap
+    from scipy.spatial.transform import Rotation  # here: importing scipy.spatial takes ~0.2 s
+
+    r0 = Rotation.from_matrix(T[j0, :3, :3])
+    r1 = Rotation.from_matrix(T[j1, :3, :3])
+    out = np.eye(4)
+    out[:3, :3] = (r0 * Rotation.from_rotvec(a * (r0.inv() * r1).as_rotvec())).as_matrix()
+    out[:3, 3] = (1.0 - a) * T[j0, :3, 3] + a * T[j1, :3, 3]
+    return out

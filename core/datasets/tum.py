@@ -44,7 +44,7 @@ import numpy as np
 
 from ..errors import CaptureError, CaptureFormatError, ValidationError
 from ..geometry import make_intrinsics
-from ..trajectory import read_tum_trajectory
+from ..trajectory import MAX_INTERPOLATION_GAP_S, interpolate_pose, read_tum_trajectory
 from .checks import apply_confidence, check_depth_size, require_dir
 from .frame import BaseCapture, RGBDFrame
 from .images import (
@@ -66,9 +66,8 @@ TUM_INTRINSICS: dict[str, tuple[float, float, float, float]] = {
 }
 """Per-sensor pinhole intrinsics ``(fx, fy, cx, cy)`` for the 640x480 TUM images."""
 
-MAX_GT_GAP_S = 0.1
-"""Ground truth is interpolated only between samples at most this far apart (mocap dropouts are left
-unposed rather than bridged)."""
+MAX_GT_GAP_S = MAX_INTERPOLATION_GAP_S
+"""Ground truth is interpolated only between samples at most this far apart (:mod:`~..trajectory`)."""
 
 _SENSOR_RE = re.compile(r"(?:freiburg|fr)_?([123])(?![0-9])")
 
@@ -149,28 +148,6 @@ def _written_by_synth(root: Path) -> bool:
     return False
 
 
-def _interpolate_pose(ts: np.ndarray, T: np.ndarray, t: float) -> np.ndarray | None:
-    """Pose at time ``t``: linear translation, slerp rotation between the two bracketing samples."""
-    if t < ts[0] or t > ts[-1]:
-        return None
-    j1 = int(np.searchsorted(ts, t, side="left"))
-    if ts[j1] == t:
-        return T[j1].copy()
-    j0 = j1 - 1
-    gap = ts[j1] - ts[j0]
-    if gap > MAX_GT_GAP_S:
-        return None
-    a = (t - ts[j0]) / gap
-    from scipy.spatial.transform import Rotation  # here: importing scipy.spatial takes ~0.2 s
-
-    r0 = Rotation.from_matrix(T[j0, :3, :3])
-    r1 = Rotation.from_matrix(T[j1, :3, :3])
-    out = np.eye(4)
-    out[:3, :3] = (r0 * Rotation.from_rotvec(a * (r0.inv() * r1).as_rotvec())).as_matrix()
-    out[:3, 3] = (1.0 - a) * T[j0, :3, 3] + a * T[j1, :3, 3]
-    return out
-
-
 def _nearest_pose(ts: np.ndarray, T: np.ndarray, t: float, max_diff_s: float) -> np.ndarray | None:
     j = int(np.searchsorted(ts, t))
     best = min((k for k in (j - 1, j) if 0 <= k < len(ts)), key=lambda k: abs(ts[k] - t))
@@ -247,7 +224,7 @@ class TUMCapture(BaseCapture):
             ts, T = traj.timestamps_s[order], traj.T_world_cam[order]
             for k, (t, _) in enumerate(self._rgb):
                 if gt == "interpolate":
-                    self._poses[k] = _interpolate_pose(ts, T, t)
+                    self._poses[k] = interpolate_pose(ts, T, t, MAX_GT_GAP_S)
                 else:
                     self._poses[k] = _nearest_pose(ts, T, t, max_time_diff_s)
             self.frames_without_gt = tuple(k for k, p in enumerate(self._poses) if p is None)

@@ -55,7 +55,7 @@ from voxfusion.core.eval import (
     transform_mesh,
     views_from_capture,
 )
-from voxfusion.core.trajectory import Trajectory, read_tum_trajectory
+from voxfusion.core.trajectory import MAX_INTERPOLATION_GAP_S, Trajectory, read_tum_trajectory
 
 __all__ = ["register", "eval_command", "report_path", "alignment_message"]
 
@@ -77,9 +77,20 @@ class Method(StrEnum):
     sampled = "sampled"
 
 
-def _trajectory_section(est_t: Trajectory, traj: Path, gt: Path, config: TrajectoryEvalConfig
-                        ) -> tuple[dict, list[dict], ATEResult]:
+def _trajectory_section(est_t: Trajectory, traj: Path, gt: Path, config: TrajectoryEvalConfig,
+                        interpolate: bool = True) -> tuple[dict, list[dict], ATEResult]:
+    """ATE / RPE of ``est_t`` against the reference file ``gt``. With ``interpolate`` and a dense reference (median
+    spacing at most half of :data:`MAX_INTERPOLATION_GAP_S`: motion capture), the reference's poses at the
+    estimate's timestamps (:meth:`Trajectory.at`, as a capture reader gives ``voxfusion run`` its ground truth, so
+    both report the same figures); otherwise the nearest reference pose within ``config.max_diff_s``."""
     ref_t = read_tum_trajectory(gt)
+    interpolate = interpolate and len(ref_t) > 1 and (
+        float(np.median(np.diff(ref_t.timestamps_s))) <= MAX_INTERPOLATION_GAP_S / 2)
+    if interpolate:
+        ref_t = ref_t.at(est_t.timestamps_s)
+        if len(ref_t) < 2:
+            raise ValidationError("--gt", f"{gt} covers fewer than 2 of the estimate's {len(est_t)} timestamps "
+                                          "(pass --no-interpolate to pair nearest poses within --max-diff)")
     ate = compute_ate(est_t, ref_t, config)
     rpe = compute_rpe(est_t, ref_t, config, scale=ate.scale)
     rows = [
@@ -97,6 +108,7 @@ def _trajectory_section(est_t: Trajectory, traj: Path, gt: Path, config: Traject
         rows.append({"metric": "Sim(3) scale", "value": ate.scale})
     section = {
         "estimate": traj, "reference": gt, "align": config.align, "max_diff_s": config.max_diff_s,
+        "reference_poses": "interpolated at the estimate's timestamps" if interpolate else "nearest within max_diff_s",
         "ate": ate, "rpe": rpe,
     }
     return section, rows, ate
@@ -267,6 +279,12 @@ def eval_command(
     max_diff_s: Annotated[float, typer.Option("--max-diff",
                                               help="Timestamp association tolerance, s.")] = 0.02,
     delta: Annotated[int, typer.Option("--delta", help="RPE pair spacing, frames.")] = 1,
+    interpolate: Annotated[bool, typer.Option("--interpolate/--no-interpolate",
+                                              help="Interpolate a dense --gt (samples <= 50 ms apart, e.g. "
+                                                   "motion capture) at the estimate's timestamps, as voxfusion "
+                                                   "run reads a capture's ground truth; "
+                                                   "--no-interpolate pairs each estimate with the nearest --gt "
+                                                   "pose within --max-diff.")] = True,
     seed: Annotated[int, typer.Option("--seed", help="Surface sampling seed.")] = 0,
     out: Annotated[Path | None, typer.Option("--out", "--json", help="JSON report path (default: eval.json, "
                                              "eval-1.json, ... beside the estimate).")] = None,
@@ -301,7 +319,7 @@ def eval_command(
         est_t = read_tum_trajectory(traj) if traj is not None else None
         ate = None
         if est_t is not None and gt is not None:
-            report["trajectory"], rows, ate = _trajectory_section(est_t, traj, gt, traj_config)
+            report["trajectory"], rows, ate = _trajectory_section(est_t, traj, gt, traj_config, interpolate)
             typer.echo(format_table(rows, ["metric", "value"]))
             typer.echo("")
         if mesh is not None:

@@ -89,6 +89,40 @@ def test_eval_trajectory_and_mesh(app, files, tmp_path):
     assert sampled["method"] == "sampled" and sampled["accuracy_m"] > full["accuracy_m"]
 
 
+def test_reference_poses_are_interpolated_at_the_estimates_timestamps(app, tmp_path):
+    """A 100 Hz reference (as TUM's motion capture) and an estimate that is exactly that motion at camera times
+    between its samples: interpolated (the default, as ``voxfusion run`` reads ground truth) the ATE is ~0; paired
+    with the nearest reference pose it is the motion of up to 5 ms, ~1 cm here."""
+    def motion(t: np.ndarray) -> np.ndarray:
+        T = np.tile(np.eye(4), (len(t), 1, 1))
+        T[:, :3, :3] = Rotation.from_euler("y", 60.0 * t[:, None], degrees=True).as_matrix()
+        T[:, 0, 3] = 2.0 * t
+        T[:, 2, 3] = 0.5 * t ** 2
+        return T
+
+    t_ref = np.arange(0.0, 3.0, 0.01)
+    t_est = 0.1 + np.arange(40) * (1 / 30) + 0.0047  # camera frames between the reference's samples
+    gt, est = tmp_path / "gt.txt", tmp_path / "est.txt"
+    write_tum_trajectory(gt, Trajectory(t_ref, motion(t_ref)))
+    write_tum_trajectory(est, Trajectory(t_est, motion(t_est)))
+    np.testing.assert_allclose(Trajectory(t_ref, motion(t_ref)).at(t_est).T_world_cam, motion(t_est), atol=2e-4)
+    rmse = {}
+    for flag in ("--interpolate", "--no-interpolate"):
+        out = tmp_path / f"{flag}.json"
+        result = CliRunner().invoke(app, ["eval", "--traj", str(est), "--gt", str(gt), flag, "--json", str(out)])
+        assert result.exit_code == 0, result.output
+        section = json.loads(out.read_text())["trajectory"]
+        assert section["ate"]["n"] == 40
+        rmse[flag] = section["ate"]["rmse_m"]
+        assert section["reference_poses"].startswith("interpolated" if flag == "--interpolate" else "nearest")
+    assert rmse["--interpolate"] < 2e-4 < 5e-3 < rmse["--no-interpolate"]
+    # a reference that does not cover the estimate is refused with the way out named
+    short = tmp_path / "short.txt"
+    write_tum_trajectory(short, Trajectory(t_ref[:5], motion(t_ref[:5])))
+    result = CliRunner().invoke(app, ["eval", "--traj", str(est), "--gt", str(short)])
+    assert result.exit_code == 2 and "--no-interpolate" in result.output
+
+
 def test_default_json_beside_estimate_never_overwrites(app, files):
     runner = CliRunner()
     result = runner.invoke(app, ["eval", "--traj", str(files["est"]), "--gt", str(files["gt"]),
