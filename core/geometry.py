@@ -168,15 +168,13 @@ def scale_motion(T_rel: np.ndarray, ratio: float) -> np.ndarray:
     T_rel = np.asarray(T_rel, dtype=np.float64)
     if ratio == 1.0:
         return T_rel
-    import torch  # here, not at the top: frames, readers and the client SDK load without torch (~1 s)
-
-    from .lie import se3_exp, se3_log
+    from .lie import se3_exp_np, se3_log_np
 
     try:
-        xi = se3_log(torch.from_numpy(nearest_rigid(T_rel)))  # closed forms (scipy's logm took ~7 ms per call)
+        xi = se3_log_np(nearest_rigid(T_rel))  # closed forms (scipy's logm took ~7 ms per call)
     except ValueError:  # a rotation of ~180 degrees (e.g. across lost frames) has no usable log: do not scale
         return T_rel
-    return nearest_rigid(se3_exp(ratio * xi).numpy())
+    return nearest_rigid(se3_exp_np(ratio * xi))
 
 
 def nearest_rigid(T: np.ndarray) -> np.ndarray:

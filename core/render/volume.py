@@ -469,7 +469,11 @@ def composite(sdf: torch.Tensor, rgb: torch.Tensor | None, t: torch.Tensor, mask
     depth = (weights * t).sum(1)
     color = None
     if rgb is not None:
-        color = (weights[:, :, None] * torch.where(mask[:, :, None], rgb, torch.zeros_like(rgb))).sum(1)
+        # per channel over [N, S] columns: the same sums to the bit as ``(weights[:, :, None] * rgb).sum(1)``, where
+        # PyTorch's CPU kernels broadcast over an inner dimension of 3 slowly (forward and backward at 1024 x 7
+        # samples, 2-core AMD EPYC: ~0.5 against ~0.8 ms; the backward's sums round differently)
+        rgb = torch.where(mask[:, :, None].expand(-1, -1, 3).contiguous(), rgb, torch.zeros_like(rgb))
+        color = torch.stack([(weights * rgb[:, :, c]).sum(1) for c in range(3)], 1)
     return RenderOutput(depth=depth, color=color, weight_sum=w_sum, hit=hit, surface=surface, t=t,
                         sdf=sdf, weights=weights, sample_mask=mask, dir_norm=dir_norm,
                         truncation_m=config.truncation_m)

@@ -38,7 +38,7 @@ from ..framedata import FrameData, flat_uv, sample_valid_pixels
 from ..lie import perturb_right
 from ..losses import LossConfig, LossTerms, compute_losses
 from ..mesh.colors import ColorView
-from ..optim import adam
+from ..optim import adam, adam_step
 from ..render.volume import RenderConfig, band_jitter, band_sample_count, camera_directions, render_band, render_rays
 from ..voxels import VoxelMap
 
@@ -573,9 +573,9 @@ class Mapper:
         if pose_opt is not None:
             pose_opt.zero_grad(set_to_none=True)
         terms.total.backward()
-        self.optimizer.step()
+        adam_step(self.optimizer)
         if pose_opt is not None:
-            pose_opt.step()
+            adam_step(pose_opt)
             for kf in window:
                 kf.pose_changed = kf.pose_changed or not kf.fixed
         return terms

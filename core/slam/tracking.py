@@ -39,7 +39,7 @@ from ..framedata import FrameData, sample_pixels
 from ..geometry import invert_pose, nearest_rigid, scale_motion
 from ..lie import perturb_right
 from ..losses import LossConfig, compute_losses
-from ..optim import adam
+from ..optim import adam, adam_step
 from ..precompiled import PrecompiledVariants
 from ..render.volume import RenderConfig, camera_rays, render_rays
 from ..voxels import VoxelMap
@@ -583,7 +583,7 @@ class Tracker:
             opt.zero_grad(set_to_none=True)
             total.backward()
             before = xi.detach().clone()
-            opt.step()
+            adam_step(opt)
             with torch.no_grad():
                 max_step = torch.maximum(max_step, ((z * scale) - before).abs().max())
                 loss_t, resid_t = terms.total.detach().to(torch.float64), med.to(torch.float64)

@@ -54,3 +54,26 @@ def test_se3_log_inverts_exp_and_matches_scipy():
                                    rtol=1e-6, atol=1e-8)
     with pytest.raises(ValueError, match="180"):
         se3_log(se3_exp(torch.tensor([0.0, 0, 0, np.pi, 0, 0], dtype=torch.float64)))
+
+
+def test_numpy_twins_match_the_torch_versions():
+    """``se3_exp_np`` / ``se3_log_np`` (host-side pose arithmetic: the motion prior) against ``se3_exp`` /
+    ``se3_log``: equal to float64 rounding, any batch shape, the small-angle series included; float32 stays
+    float32; the log refuses 180 degrees as the torch one does."""
+    import pytest
+
+    from voxfusion.core.lie import se3_exp_np, se3_log, se3_log_np
+
+    g = torch.Generator().manual_seed(1)
+    for shape in ((6,), (3, 6), (2, 4, 6)):
+        for scale in (0.0, 1e-6, 1e-3, 0.5, 2.0):
+            xi = torch.randn(*shape, generator=g, dtype=torch.float64) * scale
+            np.testing.assert_allclose(se3_exp_np(xi.numpy()), se3_exp(xi).numpy(), rtol=0, atol=1e-15)
+            if xi.dim() == 1:
+                T = se3_exp(xi)
+                np.testing.assert_allclose(se3_log_np(T.numpy()), se3_log(T).numpy(), rtol=1e-12, atol=1e-15)
+    xi32 = (torch.randn(6, generator=g) * 0.1).numpy()
+    assert se3_exp_np(xi32).dtype == np.float32
+    np.testing.assert_allclose(se3_exp_np(xi32), se3_exp(torch.from_numpy(xi32)).numpy(), rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="180"):
+        se3_log_np(se3_exp_np(np.array([0.0, 0, 0, np.pi, 0, 0])))
