@@ -8,6 +8,8 @@ a YAML file or a ``--set`` flag is a clear :class:`ConfigError` naming the dotte
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import json
 import types
 import typing
 from pathlib import Path
@@ -86,6 +88,21 @@ def _coerce(value: Any, tp: Any, key: str) -> Any:
     return value
 
 
+def _unknown_key_message(key: str, value: Any, fields: dict[str, dataclasses.Field]) -> str:
+    """What to say of an unknown key: the nearest valid one, or how to nest a dotted key, then the valid keys."""
+    head, dot, rest = key.partition(".")
+    if dot and head in fields:  # {"mapping.iters": 10}: the CLI's --set spelling in a mapping (HTTP, YAML)
+        nested: Any = value
+        for part in reversed(key.split(".")):
+            nested = {part: nested}
+        hint = (f"unknown key; dotted names are for --set overrides: in a mapping (YAML, JSON) nest them, "
+                f"e.g. {json.dumps(nested, default=str)}")
+    else:
+        near = difflib.get_close_matches(key, list(fields), n=1, cutoff=0.6)
+        hint = f"unknown key; did you mean {near[0]!r}?" if near else "unknown key"
+    return f"{hint}; valid keys here: {sorted(fields)}"
+
+
 def config_from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
     """Build dataclass ``cls`` from ``data``; missing keys keep their defaults, unknown keys raise."""
     if not dataclasses.is_dataclass(cls):
@@ -94,7 +111,7 @@ def config_from_dict(cls: type[T], data: dict[str, Any], prefix: str = "") -> T:
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - set(fields))
     if unknown:
-        raise ConfigError(prefix + unknown[0], f"unknown key; valid keys here: {sorted(fields)}")
+        raise ConfigError(prefix + unknown[0], _unknown_key_message(unknown[0], data[unknown[0]], fields))
     kwargs = {name: _coerce(v, hints[name], prefix + name) for name, v in data.items()}
     try:
         obj = cls(**kwargs)

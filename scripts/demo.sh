@@ -76,7 +76,7 @@ capture_dir, url, sid, token = sys.argv[1:5]
 capture = open_capture(capture_dir)
 headers = {"Authorization": f"Bearer {token}", "Content-Type": MEDIA_TYPE}
 t0 = time.perf_counter()
-sent = 0
+sent = waits = 0
 with httpx.Client(base_url=url, timeout=60) as client:
     for i, frame in enumerate(capture.frames()):
         data = encode_frame(frame, seq=i, session=sid, depth_encoding="png16_mm", color_encoding="jpeg")
@@ -84,10 +84,14 @@ with httpx.Client(base_url=url, timeout=60) as client:
             r = client.post(f"/sessions/{sid}/frames", content=data, headers=headers)
             if r.status_code != 429:  # queue full: wait as the server asks, then send the same frame again
                 break
+            waits += 1
             time.sleep(float(r.headers.get("Retry-After", "1")))
         r.raise_for_status()
         sent += 1
-        print(f"\r  sent {sent}/{len(capture)} frames ({sent / (time.perf_counter() - t0):.1f} frames/s)", end="")
+        # with waits, the rate is the engine's (the server's queue was full), not the upload's
+        pace = f"the server's pace: its queue was full {waits} times" if waits else "nothing waited"
+        print(f"\r  sent {sent}/{len(capture)} frames, {sent / (time.perf_counter() - t0):.1f} frames/s ({pace})",
+              end="")
 print()
 PYTHON
 

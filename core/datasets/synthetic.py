@@ -35,6 +35,7 @@ each function); ``voxfusion synth`` is their command line.
 from __future__ import annotations
 
 import json
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -389,10 +390,31 @@ Progress = Callable[[int], None]
 """Called with the index of each frame after it is written."""
 
 
-def _prepare_out_dir(out_dir: str | Path) -> Path:
+WRITTEN_NAMES = frozenset({"rgb", "depth", "confidence", "rgb.txt", "depth.txt", "confidence.txt",
+                           "groundtruth.txt", "intrinsics.txt", "results", "traj.txt", "cam_params.json",
+                           "gt_mesh.ply"})
+"""What the writers below put in a capture folder (either layout): all that ``overwrite`` may delete."""
+
+
+def _prepare_out_dir(out_dir: str | Path, overwrite: bool = False) -> Path:
+    """``out_dir``, created if missing; it must be empty, or with ``overwrite`` hold a capture these writers wrote
+    (``gt_mesh.ply`` and nothing but :data:`WRITTEN_NAMES`), which is then deleted."""
     out = Path(out_dir)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ValidationError("out_dir", f"{out} exists and is not an empty folder; choose a new one")
+        if not out.is_dir():
+            raise ValidationError("out_dir", f"{out} exists and is not a folder; choose a new one")
+        if not overwrite:
+            raise ValidationError("out_dir", f"{out} exists and is not an empty folder; choose a new one, or "
+                                  "replace the synthetic capture written there with --force")
+        entries = sorted(p.name for p in out.iterdir())
+        foreign = [name for name in entries if name not in WRITTEN_NAMES]
+        if foreign or "gt_mesh.ply" not in entries:
+            what = f"{foreign[0]!r}, which" if foreign else "no gt_mesh.ply, so it"
+            raise ValidationError("out_dir", f"{out} holds {what} is not a synthetic capture's; --force only "
+                                  "replaces a capture written by voxfusion synth: choose a new folder")
+        for name in entries:
+            path = out / name
+            shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
     out.mkdir(parents=True, exist_ok=True)
     return out
 
@@ -407,7 +429,7 @@ def _depth_u16(depth_m: np.ndarray, scale: float) -> np.ndarray:
 
 
 def write_tum_layout(capture: SyntheticCapture, out_dir: str | Path,
-                     progress: Progress | None = None) -> Path:
+                     progress: Progress | None = None, overwrite: bool = False) -> Path:
     """Write ``capture`` as a TUM RGB-D sequence folder; returns ``out_dir``.
 
     Layout (read by :class:`voxfusion.core.datasets.tum.TUMCapture`)::
@@ -420,9 +442,9 @@ def write_tum_layout(capture: SyntheticCapture, out_dir: str | Path,
         gt_mesh.ply                      the ground-truth mesh
         confidence/<ts>.png, confidence.txt   LiDAR mode only: uint8 PNG with values 0/1/2
 
-    ``out_dir`` must not exist or be empty.
+    ``out_dir`` must not exist or be empty (``overwrite``: or hold a capture written here, replaced).
     """
-    out = _prepare_out_dir(out_dir)
+    out = _prepare_out_dir(out_dir, overwrite)
     lidar = capture.config.lidar
     subdirs = ("rgb", "depth", "confidence") if lidar else ("rgb", "depth")
     for sub in subdirs:
@@ -450,7 +472,7 @@ def write_tum_layout(capture: SyntheticCapture, out_dir: str | Path,
 
 
 def write_replica_layout(capture: SyntheticCapture, out_dir: str | Path,
-                         progress: Progress | None = None) -> Path:
+                         progress: Progress | None = None, overwrite: bool = False) -> Path:
     """Write ``capture`` in the Replica (NICE-SLAM) layout; returns ``out_dir``.
 
     Layout::
@@ -463,9 +485,9 @@ def write_replica_layout(capture: SyntheticCapture, out_dir: str | Path,
         gt_mesh.ply                      the ground-truth mesh
 
     LiDAR confidence is not written (the layout has no place for it). ``out_dir`` must not exist or be
-    empty.
+    empty (``overwrite``: or hold a capture written here, replaced).
     """
-    out = _prepare_out_dir(out_dir)
+    out = _prepare_out_dir(out_dir, overwrite)
     (out / "results").mkdir()
     for frame in capture.frames():
         i = frame.index
@@ -486,10 +508,11 @@ def write_replica_layout(capture: SyntheticCapture, out_dir: str | Path,
 
 
 def write_capture(capture: SyntheticCapture, out_dir: str | Path, layout: Literal["tum", "replica"] = "tum",
-                  progress: Progress | None = None) -> Path:
-    """Write ``capture`` to ``out_dir`` in ``layout`` (``"tum"`` or ``"replica"``); returns ``out_dir``."""
+                  progress: Progress | None = None, overwrite: bool = False) -> Path:
+    """Write ``capture`` to ``out_dir`` in ``layout`` (``"tum"`` or ``"replica"``); returns ``out_dir``.
+    ``overwrite``: an ``out_dir`` holding a capture written by these writers (either layout) is replaced."""
     if layout == "tum":
-        return write_tum_layout(capture, out_dir, progress)
+        return write_tum_layout(capture, out_dir, progress, overwrite)
     if layout == "replica":
-        return write_replica_layout(capture, out_dir, progress)
+        return write_replica_layout(capture, out_dir, progress, overwrite)
     raise ValidationError("layout", f"must be 'tum' or 'replica', got {layout!r}")

@@ -3,7 +3,7 @@ from typing import Literal
 
 import pytest
 
-from voxfusion.core.config import apply_overrides, config_to_dict, load_config, parse_overrides
+from voxfusion.core.config import apply_overrides, config_from_dict, config_to_dict, load_config, parse_overrides
 from voxfusion.core.errors import ConfigError
 
 
@@ -51,6 +51,20 @@ def test_bad_overrides_name_the_key(items, key):
     with pytest.raises(ConfigError) as e:
         apply_overrides(Outer(), items)
     assert e.value.field == key
+
+
+def test_unknown_keys_say_what_was_meant():
+    """A misspelt key names the nearest valid one; a dotted key in a mapping (the --set spelling, e.g. in an HTTP
+    request's JSON) says how to nest it; neither hides the valid keys."""
+    with pytest.raises(ConfigError, match=r"did you mean 'iters'\?.*valid keys here: \['iters', 'lr', 'mode'\]") as e:
+        apply_overrides(Outer(), ["inner.iter=3"])
+    assert e.value.field == "inner.iter"
+    with pytest.raises(ConfigError, match=r'nest them, e.g. \{"inner": \{"iters": 3\}\}') as e:
+        config_from_dict(Outer, {"inner.iters": 3})
+    assert e.value.field == "inner.iters"
+    with pytest.raises(ConfigError) as e:
+        config_from_dict(Outer, {"zzz": 1})
+    assert "did you mean" not in str(e.value) and "valid keys here" in str(e.value)
 
 
 def test_missing_file(tmp_path):

@@ -205,6 +205,10 @@ def test_bad_json_requests_are_422(session, scene):
     api = srv.api
     check(api.http.post("/sessions", json={"config": {"mapping": {"bogus": 1}}}), 422, "config.mapping.bogus",
           "unknown key")
+    check(api.http.post("/sessions", json={"config": {"mapping": {"iter": 1}}}), 422, "config.mapping.iter",
+          "did you mean 'iters'?")
+    check(api.http.post("/sessions", json={"config": {"mapping.iters": 1}}), 422, "config.mapping.iters",
+          'nest them, e.g. {"mapping": {"iters": 1}}')
     check(api.http.post("/sessions", json={"config": {"device": "cuda"}}), 422, "config.device")
     check(api.http.post("/sessions", json={"preset": "nope"}), 422, "preset", "unknown preset")
     check(api.http.post("/sessions", json={"preset": "../etc"}), 422, "preset")

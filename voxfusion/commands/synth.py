@@ -5,6 +5,7 @@ Example::
     voxfusion synth out/synth_tum --frames 100 --seed 0                 # TUM layout, 320x240
     voxfusion synth out/synth_replica --layout replica --width 640 --height 480
     voxfusion synth out/synth_lidar --lidar                             # 256x192 noisy depth + confidence
+    voxfusion synth out/synth_tum --frames 30 --force                   # replace the capture written there
 
 The folder then opens with ``voxfusion.core.datasets.open_capture`` (TUM or Replica reader) and holds
 ``gt_mesh.ply`` beside the frames (layouts: :mod:`voxfusion.core.datasets.synthetic`).
@@ -33,7 +34,7 @@ class Layout(StrEnum):
 
 
 def synth_command(
-    out_dir: Annotated[Path, typer.Argument(help="Output folder (must not exist or be empty).")],
+    out_dir: Annotated[Path, typer.Argument(help="Output folder (must not exist or be empty; see --force).")],
     layout: Annotated[Layout, typer.Option("--layout", help="tum or replica.")] = Layout.tum,
     frames: Annotated[int, typer.Option("--frames", help="Number of frames.")] = 100,
     width: Annotated[int | None, typer.Option("--width", help="Image width in pixels (default 320, "
@@ -45,6 +46,9 @@ def synth_command(
                                                         "edge dropouts, confidence maps.")] = False,
     motion_scale: Annotated[float, typer.Option("--motion-scale", help="Multiplies per-frame camera "
                                                                        "motion.")] = 1.0,
+    force: Annotated[bool, typer.Option("--force", help="Replace the capture an earlier voxfusion synth wrote "
+                                                        "in OUT_DIR (a folder holding anything else is refused).")
+                     ] = False,
 ) -> None:
     """Render a synthetic indoor capture (exact depth, poses and mesh) in the TUM or Replica layout."""
     try:
@@ -59,7 +63,7 @@ def synth_command(
             bars[0].update(1)
 
         try:
-            out = write_capture(capture, out_dir, layout.value, progress=progress)
+            out = write_capture(capture, out_dir, layout.value, progress=progress, overwrite=force)
         finally:
             for bar in bars:
                 bar.close()

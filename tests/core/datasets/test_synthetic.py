@@ -313,7 +313,16 @@ def test_cli_synth_writes_a_capture(tmp_path: Path):
     back = ReplicaCapture(out)
     assert len(back) == 2 and back[0].depth_m.shape == (24, 32)
     res = runner.invoke(app, ["synth", str(out)])
-    assert res.exit_code == 2 and "out_dir" in res.output
+    assert res.exit_code == 2 and "out_dir" in res.output and "--force" in res.output
+    # --force replaces the capture synth wrote there, in the other layout too (nothing of the old one stays)
+    res = runner.invoke(app, ["synth", str(out), "--frames", "3", "--width", "32", "--height", "24", "--force"])
+    assert res.exit_code == 0, res.output
+    assert not (out / "results").exists() and len(TUMCapture(out)) == 3
+    # ... but never a folder holding anything else: nothing there is deleted
+    (out / "notes.md").write_text("mine")
+    res = runner.invoke(app, ["synth", str(out), "--frames", "2", "--width", "32", "--height", "24", "--force"])
+    assert res.exit_code == 2 and "'notes.md'" in res.output
+    assert (out / "notes.md").read_text() == "mine" and len(TUMCapture(out)) == 3
 
 
 def test_fast_rotation_mode_reaches_the_requested_yaw_rate():
