@@ -45,12 +45,12 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from bench.machine import machine_info  # noqa: E402
-from voxfusion.core import field as field_module  # noqa: E402
 from voxfusion.core.config import apply_overrides  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.eval.report import format_table, write_json  # noqa: E402
 from voxfusion.core.framedata import frame_to_device  # noqa: E402
 from voxfusion.core.geometry import backproject_depth  # noqa: E402
+from voxfusion.core.map import field as field_module  # noqa: E402
 from voxfusion.core.slam import mapping as mapping_module  # noqa: E402
 from voxfusion.core.slam import tracking_sdf  # noqa: E402
 from voxfusion.core.slam.mapping import make_mapper  # noqa: E402

@@ -9,7 +9,7 @@ Each capture's frames are played back and forth (as the GPU suite's realtime fee
 :class:`SlamSystem` at the preset :func:`preset_for` picks on a CPU, one mapping round per frame; every new snapshot's
 :func:`~voxfusion.core.slam.tracking_graphs.map_signature` is compared with the previous one's, with the static map's
 spare rows and the aligned level-0 grid box (the defaults), without spare rows (capacity = rows), and with the grid's
-tight box (:data:`~voxfusion.core.voxels.voxel_map.LEVEL0_GRID_ALIGN` = 1), in the same run. The second half of the
+tight box (:data:`~voxfusion.core.map.voxel_map.LEVEL0_GRID_ALIGN` = 1), in the same run. The second half of the
 rounds replays frames the map has seen (what a camera revisiting mapped space does). Allocation is the same at GPU
 sizes (same voxels), so the counts stand for a GPU session's recaptures per mapping round.
 """
@@ -29,9 +29,9 @@ from bench.machine import machine_info  # noqa: E402
 from voxfusion.core.datasets import open_capture  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.eval.report import write_json  # noqa: E402
+from voxfusion.core.map import voxel_map  # noqa: E402
 from voxfusion.core.slam import SlamSystem, tracking_graphs  # noqa: E402
 from voxfusion.core.slam.presets import preset_for  # noqa: E402
-from voxfusion.core.voxels import voxel_map  # noqa: E402
 
 SEVENSCENES = REPO_ROOT.parent / "shared" / "data" / "sevenscenes_redkitchen"
 

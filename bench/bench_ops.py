@@ -34,7 +34,7 @@ first 10 frames with the ``cpu`` sizes; then:
   (each call fuses into its own copy of the same map, made beforehand).
 
 Where the engine computes one thing in two forms, one for a CPU and one with fewer operators for a GPU (the trilinear
-weights, ``core/field.py``), the GPU's form is counted (``--cpu-forms``: the CPU's). The band rows count the
+weights, ``core/map/field.py``), the GPU's form is counted (``--cpu-forms``: the CPU's). The band rows count the
 fixed-shape path a GPU runs (``mapping.compact_samples: false``); ``mapping/band
 compact`` is the CPU default, which evaluates only the samples inside the map (one read-back per iteration).
 
@@ -78,7 +78,10 @@ SYNC_OPS = ("aten::_local_scalar_dense", "aten::nonzero", "aten::nonzero_static"
 def use_gpu_forms() -> None:
     """Run the GPU's forms on this machine where the engine has two (the same numbers, fewer operators); a checkout
     without them is left as it is."""
-    from voxfusion.core import field
+    try:
+        from voxfusion.core.map import field
+    except ImportError:  # a checkout from before core/map/
+        from voxfusion.core import field  # type: ignore[no-redef]
 
     if hasattr(field, "_trilinear_weights_outer"):
         field._trilinear_weight_columns = field._trilinear_weights_outer

@@ -54,13 +54,13 @@ from voxfusion.core.eval.render_probe import (  # noqa: E402
     oblique_rotation,
 )
 from voxfusion.core.eval.report import format_table, write_json  # noqa: E402
-from voxfusion.core.evidence import observe_frame  # noqa: E402
 from voxfusion.core.framedata import frame_to_device  # noqa: E402
+from voxfusion.core.map import VoxelMap  # noqa: E402
+from voxfusion.core.map.evidence import observe_frame  # noqa: E402
 from voxfusion.core.reconstruct import make_mapper  # noqa: E402
 from voxfusion.core.render.volume import render_depth_image  # noqa: E402
 from voxfusion.core.slam.mapping import _backproject  # noqa: E402
 from voxfusion.core.slam.presets import VoxFusionConfig, load_preset  # noqa: E402
-from voxfusion.core.voxels import VoxelMap  # noqa: E402
 
 DATA = REPO_ROOT.parent / "shared" / "data"
 CAPTURES = {

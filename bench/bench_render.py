@@ -47,13 +47,13 @@ import voxfusion.core.render.volume as render  # noqa: E402
 from bench.machine import machine_info  # noqa: E402
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig  # noqa: E402
 from voxfusion.core.eval.report import write_json  # noqa: E402
-from voxfusion.core.field import FieldConfig  # noqa: E402
 from voxfusion.core.framedata import frame_to_device, sample_pixels  # noqa: E402
 from voxfusion.core.losses import LossConfig  # noqa: E402
+from voxfusion.core.map import VoxelMap, morton_encode  # noqa: E402
+from voxfusion.core.map.field import FieldConfig  # noqa: E402
+from voxfusion.core.map.morton import MORTON_MAX_COORD, MORTON_MIN_COORD  # noqa: E402
 from voxfusion.core.render.volume import RenderConfig, camera_rays, intersect_voxels, intersect_voxels_reference  # noqa: E402
 from voxfusion.core.slam.mapping import Mapper, MappingConfig  # noqa: E402
-from voxfusion.core.voxels import VoxelMap, morton_encode  # noqa: E402
-from voxfusion.core.voxels.morton import MORTON_MAX_COORD, MORTON_MIN_COORD  # noqa: E402
 
 WIDTH, HEIGHT, N_FRAMES, EVERY = 320, 240, 100, 5
 WINDOW, RAYS_PER_FRAME, IMAGE_CHUNK, LOOKUP_POINTS = 5, 1024, 4096, 200_000

@@ -17,10 +17,10 @@ import torch
 
 from .config import config_from_dict, config_to_dict
 from .errors import CaptureError, ValidationError
+from .map import VoxelMap
 from .slam.mapping import Mapper, make_mapper
 from .slam.presets import VoxFusionConfig
 from .trajectory import Trajectory
-from .voxels import VoxelMap
 
 if TYPE_CHECKING:
     from .slam.system import MapSnapshot

@@ -21,12 +21,12 @@ from .datasets.frame import Capture, TimedFrames
 from .errors import ValidationError
 from .eval.report import write_json
 from .framedata import frame_to_device
+from .map.export import export_voxels
 from .mesh import export_mesh
 from .run import reference_world_axes, write_mesh_views
 from .slam.mapping import Mapper, MappingStep, make_mapper
 from .slam.presets import VoxFusionConfig
 from .trajectory import Trajectory, write_tum_trajectory
-from .voxel_export import export_voxels
 
 __all__ = ["MapRunResult", "make_mapper", "map_capture", "write_map_outputs"]
 

@@ -34,12 +34,12 @@ from .eval.report import write_json
 from .eval.trajectory_error import TrajectoryEvalConfig, compute_ate
 from .eval.trajectory_plot import plot_trajectory
 from .geometry import invert_pose
+from .map.export import export_voxels
 from .mesh import export_mesh, write_scene_views
 from .mesh.mesh_frame import WorldAxes, camera_up_forward
 from .slam.presets import VoxFusionConfig
 from .slam.system import SlamStats, SlamSystem
 from .trajectory import Trajectory, write_tum_trajectory
-from .voxel_export import export_voxels
 
 __all__ = ["write_mesh_views", "reference_world_axes", "RunResult", "run_capture", "reference_trajectory",
            "evaluate_run", "evaluate_mesh", "evaluate_phantom", "write_trajectory_plot", "ATE_CONFIG",

@@ -38,8 +38,8 @@ from scipy.spatial import cKDTree
 
 from ..errors import ShapeError, ValidationError
 from ..geometry import backproject_depth
+from ..map.morton import unique_rows
 from ..trajectory import Trajectory
-from ..voxels.morton import unique_rows
 from .mesh import sample_surface
 
 __all__ = [

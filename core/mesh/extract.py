@@ -39,7 +39,7 @@ import torch
 import trimesh
 
 from ..errors import ShapeError, ValidationError
-from ..voxels.morton import unique_rows
+from ..map.morton import unique_rows
 from .cases import (
     CENTRE_CODE,
     CORNER_OFFSETS,

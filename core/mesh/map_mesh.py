@@ -10,8 +10,8 @@ import numpy as np
 import torch
 import trimesh
 
-from ..field import SDFDecoder, query
-from ..voxels import VoxelMap
+from ..map import VoxelMap
+from ..map.field import SDFDecoder, query
 from .colors import ColorView, image_vertex_colors, vertex_normals
 from .extract import extract_mesh
 from .support import SurfaceSupport

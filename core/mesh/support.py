@@ -2,9 +2,9 @@
 
 The neural field is defined in every allocated voxel, and where no depth point ever landed (behind an
 object, outside the views, in a voxel an outlier allocated) its zero level set can be anything: extraction
-would draw phantom sheets there. Mapping marks the surface cells (:data:`~..voxels.SURFACE_CELLS` per voxel
+would draw phantom sheets there. Mapping marks the surface cells (:data:`~..map.SURFACE_CELLS` per voxel
 edge, 1.25 cm in 0.2 m voxels) that held a posed depth point
-(:meth:`~..voxels.VoxelMap.add_surface_points`); a mesh face is kept only when its centroid lies in such a
+(:meth:`~..map.VoxelMap.add_surface_points`); a mesh face is kept only when its centroid lies in such a
 cell or one of its 26 neighbours (``dilate=1``), i.e. within at most two cell diagonals (4.3 cm at 0.2 m
 voxels, under the 5 cm of the phantom-surface figure) of an observed depth point.
 
@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 
 from ..errors import ShapeError, ValidationError
-from ..voxels import SURFACE_CELLS, VoxelMap
+from ..map import SURFACE_CELLS, VoxelMap
 
 __all__ = ["SurfaceSupport"]
 

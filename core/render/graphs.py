@@ -33,9 +33,9 @@ import torch
 from torch.torch_version import TorchVersion
 
 from ..errors import ValidationError, VoxFusionError
-from ..field import SDFDecoder
+from ..map import VoxelMap
+from ..map.field import SDFDecoder
 from ..slam.tracking_graphs import Recorder, StaticMap, WarmUp, map_signature, recorder_for
-from ..voxels import VoxelMap
 from .raycast import grid_walk_planes
 from .volume import (
     RenderBudget,

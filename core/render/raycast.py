@@ -8,7 +8,7 @@ Two implementations that return identical results (same voxels in the same order
   cumulative sum of the crossing steps; membership is a ``searchsorted`` of the cells' Morton codes in
   the map's sorted codes.
 * :func:`intersect_voxels` - the fast one, used by the renderer. Membership is one gather from the map's
-  dense index grid (:meth:`~.voxels.VoxelMap.index_grid`) with the cell's flat index carried along the
+  dense index grid (:meth:`~.map.VoxelMap.index_grid`) with the cell's flat index carried along the
   walk by the same cumulative sum; and long rays first march a coarse occupancy grid (blocks of
   ``2**level`` voxels, the implicit octree) so the fine walk only covers the runs of occupied blocks.
   It falls back to the reference when the map is too large for a dense grid.
@@ -34,9 +34,9 @@ from typing import NamedTuple
 import torch
 
 from ..errors import ShapeError, ValidationError
-from ..voxels import VoxelMap
-from ..voxels.index_grid import VoxelIndexGrid
-from ..voxels.morton import morton_encode_planar
+from ..map import VoxelMap
+from ..map.index_grid import VoxelIndexGrid
+from ..map.morton import morton_encode_planar
 
 __all__ = ["VoxelHits", "intersect_voxels", "intersect_voxels_fixed", "intersect_voxels_reference", "fixed_walk_planes"]
 
@@ -536,7 +536,7 @@ first settles it and the second confirms (it moving a plane makes the result dou
 
 def fixed_walk_planes(grid: VoxelIndexGrid) -> int:
     """Crossings per axis that cover any ray clipped to the occupied box of ``grid`` (a level-0 grid whose box is
-    the map's :attr:`~.voxels.VoxelMap.voxel_bounds`): a ray crosses at most ``box + 1`` planes of an axis inside
+    the map's :attr:`~.map.VoxelMap.voxel_bounds`): a ray crosses at most ``box + 1`` planes of an axis inside
     a box ``box`` cells long, the walk adds the first crossing after ``t1``, and one more absorbs rounding."""
     return max(grid.box_shape) + 3
 

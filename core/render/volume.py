@@ -30,8 +30,8 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, ShapeError, ValidationError
-from ..field import NeuralField, SDFDecoder, SDFField
-from ..voxels import VoxelMap
+from ..map import VoxelMap
+from ..map.field import NeuralField, SDFDecoder, SDFField
 from .raycast import (
     VoxelHits,
     grid_walk_planes,

@@ -32,15 +32,15 @@ import torch
 from ..compiled import CompiledFunction
 from ..depth_filter import DepthFilterConfig
 from ..errors import ConfigError, ValidationError
-from ..evidence import EvidenceConfig, observe_frames
-from ..field import FieldConfig, SDFDecoder, query
 from ..framedata import FrameData, flat_uv, sample_valid_pixels
 from ..lie import perturb_right
 from ..losses import LossConfig, LossTerms, compute_losses
+from ..map import VoxelMap
+from ..map.evidence import EvidenceConfig, observe_frames
+from ..map.field import FieldConfig, SDFDecoder, query
 from ..mesh.colors import ColorView
 from ..optim import adam, adam_step
 from ..render.volume import RenderConfig, band_jitter, band_sample_count, camera_directions, render_band, render_rays
-from ..voxels import VoxelMap
 
 if TYPE_CHECKING:
     from .presets import VoxFusionConfig
@@ -456,7 +456,7 @@ class Mapper:
                         optimize: bool = True) -> list[MappingStep]:
         """Fuse several frames in order, as :meth:`integrate` on each with ``optimize=False`` and then on the last
         with ``optimize``, with the map's bookkeeping done once for all of them: one allocation
-        (:meth:`~.voxels.VoxelMap.allocate_counting_batch`), one surface-mark update and one evidence update
+        (:meth:`~.map.VoxelMap.allocate_counting_batch`), one surface-mark update and one evidence update
         (:func:`~.evidence.observe_frames`). A realtime mapper fuses the frames tracked since its last round so
         (on an H100 a frame fused alone cost ~11 ms of a ~240 ms round, 7 of them per round).
 

@@ -36,8 +36,8 @@ from ..config import apply_overrides, config_from_dict, merge_dicts, read_config
 from ..datasets.frame import Capture
 from ..datasets.profile import CAPTURE_KINDS, CaptureProfile
 from ..errors import ConfigError
-from ..field import FieldConfig
 from ..losses import LossConfig
+from ..map.field import FieldConfig
 from ..render.volume import RenderConfig
 from .mapping import MappingConfig
 from .tracking import TrackingConfig

@@ -10,7 +10,7 @@ one of two modes (``VoxFusionConfig.mode``):
   **mapping worker** thread. The mapper fuses every tracked frame (allocation + keyframe test), runs
   its optimisation round on the newest one, and then publishes a map snapshot that the tracker picks up
   by a reference swap (index tables shared, embeddings and decoder copied once per round; see
-  :meth:`~.voxels.VoxelMap.snapshot`). The tracker never waits for mapping except for the very first
+  :meth:`~.map.VoxelMap.snapshot`). The tracker never waits for mapping except for the very first
   frame, which initialises the map. On CUDA each worker runs on its own stream; on a CPU torch's intra-op
   threads are halved while they run, so the two workers do not oversubscribe the cores (``realtime_cpu_threads``).
 
@@ -38,12 +38,14 @@ import trimesh
 from ..cpu import usable_cpu_count
 from ..datasets.frame import RGBDFrame
 from ..errors import EngineFailedError, MapNotReadyError, ValidationError
-from ..field import SDFDecoder
 from ..frame_checks import MIN_INIT_VALID_PIXELS, intrinsics_problem, usable_pose
 from ..framedata import FrameData, frame_to_device
 from ..geometry import invert_pose, nearest_rigid, scale_motion
 from ..host_memory import retain_freed_memory
 from ..lie import so3_exp
+from ..map import VoxelMap
+from ..map.export import voxels_npz_bytes, voxels_ply_bytes
+from ..map.field import SDFDecoder
 from ..mesh import extract_map_mesh
 from ..mesh.mesh_frame import WorldAxes, camera_up_forward
 from ..optim import preload as preload_optimizer
@@ -51,8 +53,6 @@ from ..precompiled import preload as preload_precompiled
 from ..render.graphs import OcclusionGraphs
 from ..render.volume import RenderConfig, RenderedImage, render_depth_image
 from ..trajectory import Trajectory
-from ..voxel_export import voxels_npz_bytes, voxels_ply_bytes
-from ..voxels import VoxelMap
 from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper, publish_keyframe_poses
 from .presets import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
@@ -201,7 +201,7 @@ class MapSnapshot:
         return extract_map_mesh(self.voxels, self.decoder, mesh_res, support, color_views=views)
 
     def export(self, fmt: str) -> bytes:
-        """The voxels as ``npz`` (codes, embeddings and decoder: :func:`.voxel_export.voxels_npz_bytes`) or as
+        """The voxels as ``npz`` (codes, embeddings and decoder: :func:`~.map.export.voxels_npz_bytes`) or as
         a ``ply`` point cloud of voxel centres."""
         if fmt == "npz":
             return voxels_npz_bytes(self.voxels, self.decoder)

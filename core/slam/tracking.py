@@ -34,15 +34,15 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError
-from ..field import SDFDecoder
 from ..framedata import FrameData, sample_pixels
 from ..geometry import invert_pose, nearest_rigid, scale_motion
 from ..lie import perturb_right
 from ..losses import LossConfig, compute_losses
+from ..map import VoxelMap
+from ..map.field import SDFDecoder
 from ..optim import adam, adam_step
 from ..precompiled import PrecompiledVariants
 from ..render.volume import RenderConfig, camera_rays, render_rays
-from ..voxels import VoxelMap
 from .tracking_graphs import SolverGraphs
 from .tracking_sdf import (
     PRECOMPILED_LINEARIZE,

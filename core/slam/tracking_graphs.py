@@ -36,9 +36,9 @@ from collections.abc import Callable
 import torch
 
 from ..errors import VoxFusionError
-from ..field import SDFDecoder
-from ..voxels import VoxelMap
-from ..voxels.index_grid import VoxelIndexGrid
+from ..map import VoxelMap
+from ..map.field import SDFDecoder
+from ..map.index_grid import VoxelIndexGrid
 from .tracking_sdf import (
     DepthReference,
     LMState,
@@ -174,7 +174,7 @@ def _copy_state(dst: LMState | tuple[torch.Tensor | None, ...], src: LMState | t
 
 MAP_TENSORS = ("embeddings", "_voxel_coords", "_voxel_vertex_ids", "_sorted_voxel_codes", "_voxel_perm",
                "_voxel_active")
-"""The :class:`~.voxels.VoxelMap` tensors the solver's stages read, besides its level-0 index grid (the tests run the
+"""The :class:`~.map.VoxelMap` tensors the solver's stages read, besides its level-0 index grid (the tests run the
 stages on a map whose other tensors hold garbage): what :class:`StaticMap` copies."""
 GRID_MAP_TENSORS = MAP_TENSORS[:3]
 """Those of them the stages read when the map has a dense level-0 grid (the others serve sorted-code lookups)."""
@@ -184,7 +184,7 @@ snapshot holds: the next power of two, at least this many, so a map that allocat
 outgrows that, instead of being captured again at every mapping round that allocated. Only the snapshot's rows are
 copied in and no stage reads past them, so the spare rows cost memory only (4096 rows: ~0.6 MB). ``python
 bench/bench_map_structure.py`` (200 mapping rounds; the grid's box aligned,
-:data:`~.voxels.voxel_map.LEVEL0_GRID_ALIGN`): synthetic room / 7-Scenes 1 / 0 captures after the first, against
+:data:`~.map.voxel_map.LEVEL0_GRID_ALIGN`): synthetic room / 7-Scenes 1 / 0 captures after the first, against
 71 / 73 without spare rows."""
 
 

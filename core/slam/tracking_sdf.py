@@ -53,12 +53,12 @@ import torch
 
 from ..compiled import CompiledFunction
 from ..errors import ShapeError, ValidationError
-from ..field import NeuralField, SDFDecoder, interpolate_unchecked, local_coords, sdf_with_gradient
 from ..framedata import FrameData, sample_valid_pixels
 from ..geometry import invert_pose
 from ..lie import perturb_right
+from ..map import VoxelMap
+from ..map.field import NeuralField, SDFDecoder, interpolate_unchecked, local_coords, sdf_with_gradient
 from ..precompiled import PrecompiledFunction, PrecompiledVariants
-from ..voxels import VoxelMap
 
 log = logging.getLogger("voxfusion.tracking")
 

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from voxfusion.core.errors import ConfigError, ShapeError, ValidationError
-from voxfusion.core.field import FieldConfig, NeuralField, SDFDecoder, interpolate, local_coords, query
-from voxfusion.core.voxels import CORNER_OFFSETS, VoxelMap
+from voxfusion.core.map import CORNER_OFFSETS, VoxelMap
+from voxfusion.core.map.field import FieldConfig, NeuralField, SDFDecoder, interpolate, local_coords, query
 
 
 def _two_voxel_map() -> VoxelMap:
@@ -134,7 +134,7 @@ def _map_with_points_inside(embed_dim: int, n_allocated: int, n_points: int, see
 def test_trilinear_weights_are_the_corner_products_with_their_gradient():
     """The per-column weights (hand-written backward) against the products of per-axis weights in corner
     order, and the backward against finite differences (float64)."""
-    from voxfusion.core.field import trilinear_weights
+    from voxfusion.core.map.field import trilinear_weights
 
     g = torch.Generator().manual_seed(3)
     local = torch.rand(257, 3, generator=g, dtype=torch.float64)
@@ -157,7 +157,7 @@ def test_trilinear_weights_are_the_corner_products_with_their_gradient():
 def test_trilinear_weights_per_column_and_as_outer_products_are_the_same_numbers(dtype):
     """The CPU form (per column) and the GPU form (outer products of per-axis weights, fewer launches) compute the
     same arithmetic in the same order: equal to the bit, weights and coordinate gradients, corners included."""
-    from voxfusion.core import field
+    from voxfusion.core.map import field
 
     g = torch.Generator().manual_seed(5)
     local = torch.rand(1000, 3, generator=g, dtype=dtype)
@@ -175,7 +175,7 @@ def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_poi
     features, and gradients to both the embeddings and the points (the trackers differentiate through the
     trilinear weights). 3000 points outnumber the voxels (the table gradient accumulates per voxel first),
     40 do not (one accumulation over the corner rows)."""
-    from voxfusion.core.field import interpolate_reference, interpolate_unchecked
+    from voxfusion.core.map.field import interpolate_reference, interpolate_unchecked
 
     vm, pts, idx, out_grad = _map_with_points_inside(16, 400, n_points, seed=1)
     assert (pts.shape[0] > vm.n_voxels) == (n_points == 3000)
@@ -193,7 +193,7 @@ def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_poi
 def test_fused_interpolation_backward_is_reproducible_and_serves_a_frozen_table():
     """Offline runs are bit-reproducible on CPU, so the hand-written backward must be too; and the SDF
     tracker asks only for the points' gradient, with a table that needs none."""
-    from voxfusion.core.field import interpolate_unchecked
+    from voxfusion.core.map.field import interpolate_unchecked
 
     vm, pts, idx, out_grad = _map_with_points_inside(8, 300, 5000, seed=2)
     grads = []
@@ -284,7 +284,7 @@ def test_compile_failure_leaves_one_warning_and_the_eager_decoder(monkeypatch, c
     import torch._dynamo
     import torch._inductor.config as inductor_config
 
-    from voxfusion.core import field
+    from voxfusion.core.map import field
 
     monkeypatch.setattr(field.COMPILED_MLP, "_compiled", None)
     monkeypatch.setattr(field.COMPILED_MLP, "failed", False)
@@ -326,7 +326,7 @@ def test_sdf_with_gradient_matches_autograd_through_the_field(sdf_layers: int):
     through the same interpolation and decoder: values and spatial gradients, for 1-3 hidden layers, with
     points on voxel faces and corners (where the local coordinate is exactly 0 or 1) among random ones, and
     with random decoder weights large enough that many ReLUs are off."""
-    from voxfusion.core.field import sdf_with_gradient, sdf_with_gradient_reference
+    from voxfusion.core.map.field import sdf_with_gradient, sdf_with_gradient_reference
 
     vm, pts, idx, _ = _map_with_points_inside(16, 400, 3000, seed=4)
     with torch.no_grad():
@@ -350,7 +350,7 @@ def test_sdf_with_gradient_falls_back_to_autograd_for_other_decoders(variant: di
     take the autograd path, so the result is the reference's exactly."""
     import dataclasses
 
-    from voxfusion.core.field import sdf_with_gradient, sdf_with_gradient_reference
+    from voxfusion.core.map.field import sdf_with_gradient, sdf_with_gradient_reference
 
     vm, pts, idx, _ = _map_with_points_inside(16, 200, 500, seed=5)
     torch.manual_seed(0)
@@ -364,7 +364,7 @@ def test_sdf_with_gradient_falls_back_to_autograd_for_other_decoders(variant: di
 def test_corner_weight_gradient_gathers_per_voxel_or_per_sample_alike():
     """More samples than voxels: every voxel's corner rows once, then per sample; fewer: per sample directly. The
     same numbers either way (the rows gathered are the same, the product the same)."""
-    from voxfusion.core.field import _corner_weight_grad
+    from voxfusion.core.map.field import _corner_weight_grad
 
     g = torch.Generator().manual_seed(5)
     emb = torch.randn(60, 16, generator=g)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from voxfusion.core.errors import ValidationError
-from voxfusion.core.voxels.index_grid import build_index_grid
+from voxfusion.core.map.index_grid import build_index_grid
 
 
 def _coords(seed: int = 0, n: int = 200) -> torch.Tensor:

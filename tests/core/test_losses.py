@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from voxfusion.core.errors import ConfigError, ShapeError
-from voxfusion.core.field import SDFDecoder
 from voxfusion.core.losses import LossConfig, compute_losses
+from voxfusion.core.map import VoxelMap
+from voxfusion.core.map.field import SDFDecoder
 from voxfusion.core.render.volume import RenderConfig, RenderOutput, camera_rays, render_rays
-from voxfusion.core.voxels import VoxelMap
 
 TR = 0.1
 

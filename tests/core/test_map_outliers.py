@@ -3,7 +3,7 @@
 Two mechanisms, each tested on its own and then together on real and synthetic captures:
 
 * the neighbourhood-support depth filter (``core/depth_filter.py``), applied where frames enter the engine;
-* per-voxel observation evidence with an active mask (``core/evidence.py``, ``VoxelMap.set_active``).
+* per-voxel observation evidence with an active mask (``core/map/evidence.py``, ``VoxelMap.set_active``).
 
 The end-to-end probe: map the first frame, render its depth at its own pose, and require a median
 ``|rendered - observed| <= 2 cm`` with 0.5 % and 2 % of the pixels set to random depths in 0.3-1.0 m, with
@@ -37,15 +37,15 @@ from voxfusion.core.eval.render_probe import (
     depth_probe,
     oblique_rotation,
 )
-from voxfusion.core.evidence import EvidenceConfig, free_space_voxels, observe_frame
 from voxfusion.core.framedata import frame_to_device
 from voxfusion.core.geometry import make_intrinsics
+from voxfusion.core.map import VoxelMap
+from voxfusion.core.map.evidence import EvidenceConfig, free_space_voxels, observe_frame
 from voxfusion.core.reconstruct import make_mapper
 from voxfusion.core.render.volume import camera_rays, intersect_voxels, intersect_voxels_reference, render_depth_image
 from voxfusion.core.slam import SlamSystem
 from voxfusion.core.slam.mapping import _backproject
 from voxfusion.core.slam.presets import load_preset
-from voxfusion.core.voxels import VoxelMap
 
 PROBE_MAX_M = 0.02
 """Median |rendered - observed| depth of the first frame at its own pose (clean maps give 0.4-1.7 cm)."""
@@ -252,7 +252,7 @@ def test_free_space_sampling_matches_exact_ray_voxel_traversal(step_ratio, min_r
 def test_free_space_of_several_views_sampled_together_is_each_views_own():
     """A realtime round's frames cast their free-space rays together: the same entries as each frame alone (in
     another order), views without a valid pixel adding none."""
-    from voxfusion.core.evidence import free_space_voxels_many
+    from voxfusion.core.map.evidence import free_space_voxels_many
 
     cap = SyntheticCapture(SyntheticConfig(n_frames=6, width=64, height=48, seed=2))
     views = []

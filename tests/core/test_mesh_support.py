@@ -13,10 +13,10 @@ import trimesh
 
 from voxfusion.core.errors import ValidationError
 from voxfusion.core.eval import read_mesh_frame
-from voxfusion.core.evidence import EvidenceConfig, evidence_active
+from voxfusion.core.map import SURFACE_CELLS, VoxelMap
+from voxfusion.core.map.evidence import EvidenceConfig, evidence_active
 from voxfusion.core.mesh import SurfaceSupport, export_mesh, extract_mesh, mesh_bytes
 from voxfusion.core.mesh.mesh_frame import T_GLTF_WORLD, WorldAxes, camera_up_forward, gltf_from_world
-from voxfusion.core.voxels import SURFACE_CELLS, VoxelMap
 
 VOXEL_M = 0.2
 

@@ -11,8 +11,9 @@ import torch
 import voxfusion.core.render.raycast as raycast_module
 from voxfusion.core.datasets.synthetic import SyntheticCapture, SyntheticConfig
 from voxfusion.core.errors import ConfigError, ShapeError
-from voxfusion.core.field import FieldConfig, NeuralField, SDFDecoder
 from voxfusion.core.geometry import backproject_depth, make_intrinsics
+from voxfusion.core.map import VoxelMap
+from voxfusion.core.map.field import FieldConfig, NeuralField, SDFDecoder
 from voxfusion.core.render.volume import (
     RenderConfig,
     VoxelHits,
@@ -26,7 +27,6 @@ from voxfusion.core.render.volume import (
     render_rays_fixed,
     sample_along_hits,
 )
-from voxfusion.core.voxels import VoxelMap
 
 K_TEST = make_intrinsics(60.0, 60.0, 15.5, 11.5)  # 32 x 24 image
 

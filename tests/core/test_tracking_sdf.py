@@ -67,7 +67,7 @@ def test_normal_equations_match_autograd_jacobian(room):
     cost, H, b, r, ok = linearize(mapper.voxels, mapper.decoder, pts, T, scfg)
     assert int(ok.sum()) > 100
 
-    from voxfusion.core.field import query
+    from voxfusion.core.map.field import query
 
     def residuals(xi):
         Tx = perturb_right(T, xi)

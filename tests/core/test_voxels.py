@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from voxfusion.core.errors import ShapeError, ValidationError
-from voxfusion.core.voxels import (
+from voxfusion.core.map import (
     CORNER_OFFSETS,
     MORTON_MAX_COORD,
     MORTON_MIN_COORD,
@@ -15,8 +15,8 @@ from voxfusion.core.voxels import (
     morton_decode,
     morton_encode,
 )
-from voxfusion.core.voxels.index_grid import build_index_grid
-from voxfusion.core.voxels.voxel_map import LEVEL0_GRID_ALIGN
+from voxfusion.core.map.index_grid import build_index_grid
+from voxfusion.core.map.voxel_map import LEVEL0_GRID_ALIGN
 
 
 def _reference_morton(x: int, y: int, z: int) -> int:
@@ -82,7 +82,7 @@ def test_unique_codes_and_bounded_unique_match_torch_unique(spread: int):
     """The dense-occupancy uniques (allocation, surface cells) against ``torch.unique``: coordinates either
     side of zero in a small box, a frame-sized box, and a box too large for flags (the fallback); the
     bounded unique drops entries outside ``[0, bound)`` such as the -1 "no voxel" keys, on both paths."""
-    from voxfusion.core.voxels.morton import morton_encode, unique_bounded, unique_codes
+    from voxfusion.core.map.morton import morton_encode, unique_bounded, unique_codes
 
     g = torch.Generator().manual_seed(spread)
     ijk = torch.randint(-spread, spread, (5000, 3), generator=g)
@@ -466,7 +466,7 @@ def test_cuda_map_matches_cpu_map():
 
 def test_pack_flags_matches_numpy_packbits_little_endian():
     """The surface mask's bit packing (eight flags per multiply, no loop over bits) against numpy's reference."""
-    from voxfusion.core.voxels.voxel_map import _pack_flags
+    from voxfusion.core.map.voxel_map import _pack_flags
 
     g = torch.Generator().manual_seed(0)
     for n, p in ((8, 0.5), (64, 0.1), (3 * 4096, 0.3), (4096, 1.0), (4096, 0.0)):
@@ -480,7 +480,7 @@ def test_pack_flags_matches_numpy_packbits_little_endian():
 def test_popcount_rows_matches_the_byte_table():
     """The surface counts' popcount (SWAR on int64 words, whose shifts are arithmetic) against a per-byte table,
     with bytes whose top bit is set (negative words) included."""
-    from voxfusion.core.voxels.voxel_map import _popcount_rows, _popcount_rows_reference
+    from voxfusion.core.map.voxel_map import _popcount_rows, _popcount_rows_reference
 
     g = torch.Generator().manual_seed(0)
     rows = torch.randint(0, 256, (37, 512), generator=g).to(torch.uint8)
@@ -496,7 +496,7 @@ def test_popcount_rows_matches_the_byte_table():
 
 @pytest.mark.parametrize("max_dense", [1 << 22, 64])  # the dense box, and the sort of pairs it falls back to
 def test_tagged_unique_codes_are_the_distinct_pairs_by_code_then_tag(max_dense):
-    from voxfusion.core.voxels.morton import morton_encode, unique_codes, unique_codes_tagged
+    from voxfusion.core.map.morton import morton_encode, unique_codes, unique_codes_tagged
 
     g = torch.Generator().manual_seed(2)
     ijk = torch.randint(-6, 6, (500, 3), generator=g)

@@ -134,7 +134,7 @@ def test_phantom_for_capture_uses_the_trajectory_or_the_reference_poses():
 
 
 def test_voxel_keys_are_deduplicated_as_rows_are():
-    from voxfusion.core.voxels.morton import unique_rows
+    from voxfusion.core.map.morton import unique_rows
 
     rng = np.random.default_rng(0)
     keys = rng.integers(-40, 40, (5000, 3))

@@ -9,8 +9,8 @@ import numpy as np
 import torch
 import trimesh
 
-from .errors import ValidationError
-from .voxels import VoxelMap
+from ..errors import ValidationError
+from .voxel_map import VoxelMap
 
 __all__ = ["VOXEL_FORMATS", "voxels_npz_bytes", "voxels_ply_bytes", "export_voxels"]
 

@@ -38,7 +38,7 @@ neighbouring voxel, more views add hits (which re-activate the voxel), and an al
 where a barely trained field draws phantom surfaces.
 
 An inactive voxel is kept in the map but read as empty by raycasting, rendering, training, queries and
-mesh extraction (see :class:`~.voxels.VoxelMap`); its counters keep growing, so enough later hits make it
+mesh extraction (see :class:`~.voxel_map.VoxelMap`); its counters keep growing, so enough later hits make it
 active again. The counters and the mask are part of the map's ``state_dict`` and so of checkpoints.
 
 We chose a mask over pruning: removing voxels would have to compact the voxel tables, drop orphaned
@@ -53,9 +53,9 @@ from dataclasses import dataclass
 
 import torch
 
-from .errors import ConfigError, ShapeError, ValidationError
-from .framedata import FrameData
-from .voxels import VoxelMap
+from ..errors import ConfigError, ShapeError, ValidationError
+from ..framedata import FrameData
+from .voxel_map import VoxelMap
 
 __all__ = ["EvidenceConfig", "EvidenceUpdate", "free_space_voxels", "free_space_voxels_many", "evidence_active",
            "observe_frame", "observe_frames"]
@@ -94,7 +94,7 @@ class EvidenceConfig:
     judged on a handful of rays."""
     min_surface_cells: int = 12
     """...and fewer than this many of its 4096 surface cells (1.25 cm at 0.2 m voxels,
-    :meth:`~.voxels.VoxelMap.add_surface_points`) ever held a depth point. A real surface is extended: even
+    :meth:`~.voxel_map.VoxelMap.add_surface_points`) ever held a depth point. A real surface is extended: even
     a sliver of floor grazing a voxel's border fills dozens of cells (14-64 measured with 2.5 cm cells on the
     synthetic room, where a floor 2 mm above a voxel border made 40 such slivers that the ratio alone masked,
     cutting mesh completion to 91 %; a surface crosses about four times as many 1.25 cm cells, not
@@ -248,7 +248,7 @@ def observe_frame(voxel_map: VoxelMap, frame: FrameData, T_world_cam: torch.Tens
         config: :class:`EvidenceConfig`.
         point_weight: pixels each point stands for (``stride**2``, ``MappingConfig.stride_for``).
         point_voxels: ``[N]`` int64 the allocated voxel of each point (-1: none) when the caller has looked
-            them up already (:meth:`~.voxels.VoxelMap.locate_surface_points`); None: looked up here.
+            them up already (:meth:`~.voxel_map.VoxelMap.locate_surface_points`); None: looked up here.
     """
     return observe_frames(voxel_map, [(frame, T_world_cam)], points_world, config, point_weight, point_voxels)
 

@@ -27,9 +27,10 @@ from typing import Literal
 import torch
 from torch import nn
 
-from .compiled import CompiledFunction
-from .errors import ConfigError, ShapeError, ValidationError
-from .voxels import CORNER_OFFSETS, VoxelMap
+from ..compiled import CompiledFunction
+from ..errors import ConfigError, ShapeError, ValidationError
+from .morton import CORNER_OFFSETS
+from .voxel_map import VoxelMap
 
 __all__ = [
     "SDFField",
@@ -398,7 +399,7 @@ def sdf_with_gradient_reference(voxel_map: VoxelMap, decoder: SDFDecoder, points
 
 def trilinear_weights(local_xyz: torch.Tensor) -> torch.Tensor:
     """``[K, 3]`` in-voxel coordinates in [0, 1] -> ``[K, 8]`` trilinear weights in corner order
-    ``c = 4 dx + 2 dy + dz`` (:data:`~.voxels.CORNER_OFFSETS`), differentiable in the coordinates (first order).
+    ``c = 4 dx + 2 dy + dz`` (:data:`~.morton.CORNER_OFFSETS`), differentiable in the coordinates (first order).
 
     With a hand-written backward, in two forms with the same arithmetic in the same order (tested equal to the
     bit): per column on a CPU, and as an outer product of per-axis weights elsewhere. The outer product is a

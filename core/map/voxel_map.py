@@ -16,7 +16,7 @@ Point lookups and ray marching use a dense index grid over the bounding box inst
 :attr:`VoxelMap.dense_grid_max_cells`; beyond that they fall back to the sorted codes.
 
 Observation evidence and the active mask: each voxel carries two counters filled by mapping
-(:func:`~..evidence.observe_frame`), ``voxel_hits`` (depth points that fell in it) and ``voxel_free``
+(:func:`~.evidence.observe_frame`), ``voxel_hits`` (depth points that fell in it) and ``voxel_free``
 (camera rays that crossed it as free space, well in front of their observed surface), and an ``active``
 flag derived from them. An **inactive** voxel stays allocated (its code, vertices, embeddings and
 evidence are kept, so allocation never re-creates it and later hits can re-activate it) but every *read*
@@ -578,7 +578,7 @@ class VoxelMap:
     # ------------------------------------------------------------------ evidence
     def add_evidence(self, hit_idx: torch.Tensor, free_idx: torch.Tensor, hit_weight: float = 1.0,
                      free_weight: float = 1.0) -> None:
-        """Add observations to the per-voxel evidence counters (see :mod:`..evidence` for what they mean).
+        """Add observations to the per-voxel evidence counters (see :mod:`.evidence` for what they mean).
 
         Args:
             hit_idx: ``[K]`` int64 voxel indices, one per depth point that fell in the voxel (repeats add
@@ -617,7 +617,7 @@ class VoxelMap:
     def locate_surface_points(self, points_world: torch.Tensor) -> SurfacePoints:
         """Where posed depth points fall: their allocated voxel (active or not) and surface cell in it
         (:class:`SurfacePoints`), for :meth:`add_surface_points`; the voxels also serve as the points' hit
-        voxels for the free-space evidence (:func:`~..evidence.observe_frame`), so a frame looks its points up
+        voxels for the free-space evidence (:func:`~.evidence.observe_frame`), so a frame looks its points up
         once.
 
         Args:
