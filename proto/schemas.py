@@ -197,13 +197,18 @@ class PoseOut(_Model):
 
 
 class Trajectory(_Model):
-    """``GET /sessions/{id}/trajectory`` answer: every estimated pose, in ``seq`` order.
+    """``GET /sessions/{id}/poses`` answer (zenoh: ``sessions/<id>/trajectory``): every estimated pose, in ``seq``
+    order.
 
     (Not :class:`voxfusion.core.trajectory.Trajectory`; import this one as ``schemas.Trajectory``.)
     """
 
     session: str
     poses: list[PoseOut]
+    frames_received: int | None = Field(None, ge=0)
+    """Frames the session has received (its status' ``frames_received``) when the poses were read: fewer poses than
+    this are frames still queued or being tracked (a new session's engine is starting, its first frame mapped),
+    or frames the tracker dropped (status ``frames_dropped``), not lost data. None from a server that predates it."""
 
 
 RenderFormat = Literal["f16", "png16"]

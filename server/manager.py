@@ -460,11 +460,12 @@ class SessionManager:
         return poses[-1]
 
     def trajectory(self, session_id: str) -> Trajectory:
-        """Every pose of the session (with keyframe refinements), in tracking order."""
+        """Every pose of the session (with keyframe refinements), in tracking order, and how many frames it had
+        received (counted after the poses were read, so they never outnumber the count)."""
         self.get(session_id)
         s = self._open_session(session_id)
         poses = s.poses() if s is not None else self._stored_map(session_id).poses()
-        return Trajectory(session=session_id, poses=poses)
+        return Trajectory(session=session_id, poses=poses, frames_received=self.status(session_id).frames_received)
 
     def latest_frame(self, session_id: str) -> LatestFrame:
         """The newest frame the session received: the open session's last accepted frame, else the last

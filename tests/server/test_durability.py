@@ -112,8 +112,13 @@ def test_graceful_restart_keeps_a_checkpoint_and_resumes_on_request(server_facto
     scene = make_scene(4, seed=5)
     srv = server_factory()
     sid, token = srv.api.create("resume-me", config=FAST, mode="offline")
+    # no pose yet, and the answer says that no frame came either (not that frames were lost)
+    assert srv.api.http.get(f"/sessions/{sid}/poses", headers=srv.api.auth(token)).json() == {
+        "session": sid, "poses": [], "frames_received": 0}
     for m in scene.messages:
         assert srv.api.post_frame(sid, token, m).status_code == 202
+    early = srv.api.http.get(f"/sessions/{sid}/poses", headers=srv.api.auth(token)).json()
+    assert early["frames_received"] == 4 and len(early["poses"]) <= 4  # the rest are queued, not lost
     wait_until(lambda: srv.api.status(sid, token)["frames_tracked"] == 4, 120, "tracking")
     srv.stop()  # graceful: open sessions are checkpointed
     folder = srv.settings.sessions_dir / sid
@@ -124,7 +129,8 @@ def test_graceful_restart_keeps_a_checkpoint_and_resumes_on_request(server_facto
     st = api.status(sid, token)
     assert st["resume_required"] and st["frames_received"] == 4
     # until it resumes, the session's outputs come from its last checkpoint
-    assert len(api.http.get(f"/sessions/{sid}/poses", headers=api.auth(token)).json()["poses"]) == 4
+    stored = api.http.get(f"/sessions/{sid}/poses", headers=api.auth(token)).json()
+    assert len(stored["poses"]) == 4 and stored["frames_received"] == 4
     assert api.http.get(f"/sessions/{sid}/mesh", headers=api.auth(token)).status_code == 200
     r = api.http.post(f"/sessions/{sid}/resume", headers=api.auth(token))
     assert r.status_code == 202 and r.json()["state"] == "running" and not r.json()["resume_required"]
