@@ -212,6 +212,13 @@ def test_run_without_config_chooses_the_preset(tiny_capture: Path, tmp_path: Pat
     assert (tmp_path / "run" / "trajectory.txt").is_file()
     metrics = (tmp_path / "run" / "metrics.json").read_text()
     assert '"sized_for": "cpu"' in metrics
+    # the timings say what they time: the frames loop, and the whole command (which also builds the engine, meshes,
+    # evaluates and writes), so neither is mistaken for the other; metrics.json keeps its keys
+    rows = {line.rsplit("  ", 1)[0].strip(): line.rsplit(None, 1)[-1] for line in out.splitlines() if "[s]" in line}
+    loop = float(rows["frames loop [s] (reading frames and the engine's work on them)"])
+    whole = float(rows["the whole command until this table [s] (imports, mesh, evaluation, outputs too)"])
+    assert 0 < loop < whole
+    assert '"wall_s"' in metrics
 
 
 def test_run_with_a_gpu_preset_on_cpu_warns_once(tiny_capture: Path, tmp_path: Path):

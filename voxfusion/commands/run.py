@@ -19,6 +19,8 @@ memory) and ``frames.json``. An OUT holding another command's outputs (a ``voxfu
 from __future__ import annotations
 
 import math
+import os
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -98,6 +100,7 @@ def register(app: typer.Typer) -> None:
                                                             "the folder.")] = False,
     ) -> None:
         """Track and map CAPTURE; print ATE / mesh metrics / speed and write all outputs to OUT."""
+        t_command = time.perf_counter() - (process_age_s() or 0.0)  # when the process started, where known
         for path in claim_output_dir(out, "run", force):
             typer.echo(f"--force: deleted {path} (another command's output)")
         overrides = list(set_ or [])
@@ -109,7 +112,8 @@ def register(app: typer.Typer) -> None:
         cfg = config_for_capture(cap, config, overrides, device)
         result = run_capture(cap, cfg, out, speed=speed)
         st = result.stats
-        rows = [{"metric": k, "value": v} for k, v in timing_summary(result).items()]
+        timings = timing_summary(result)
+        rows = [{"metric": label, "value": timings[key]} for key, label in TIMING_LABELS.items()]
         rows += [{"metric": "frames tracked / lost / dropped",
                   "value": f"{st.frames_tracked} / {st.frames_lost} / {st.frames_dropped}"},
                  {"metric": "keyframes", "value": st.keyframes}, {"metric": "voxels", "value": st.voxels}]
@@ -119,11 +123,37 @@ def register(app: typer.Typer) -> None:
                 rows.append({"metric": f"ATE rmse [cm] ({key[4:]} align)", "value": ate_cm})
         rows += [consistency_row(name, gaps) for name, gaps in result.metrics.get("depth_consistency", {}).items()]
         rows += mesh_metric_rows(result.metrics)
+        rows.append({"metric": "the whole command until this table [s] (imports, mesh, evaluation, outputs too)",
+                     "value": time.perf_counter() - t_command})
         typer.echo(format_table(rows))
         typer.echo(f"outputs in {out}")
         note = precompile_note()
         if note:
             typer.echo(note)
+
+
+TIMING_LABELS = {
+    "wall_s": "frames loop [s] (reading frames and the engine's work on them)",
+    "load_s": "reading frames [s]",
+    "fps": "frames/s (offline: the loop less reading frames; realtime: the loop's wall clock)",
+    "tracking_ms_per_frame": "tracking [ms per frame]",
+    "tracking_ms_per_iter": "tracking [ms per iteration]",
+    "mapping_ms_per_iter": "mapping [ms per iteration]",
+    "tracking_iters": "tracking iterations",
+    "mapping_iters": "mapping iterations",
+}
+"""The printed table's names for :func:`~voxfusion.core.run.timing_summary`'s keys (``metrics.json`` keeps the keys)."""
+
+
+def process_age_s() -> float | None:
+    """Seconds since this process started, to 10 ms (Linux: ``/proc``; None elsewhere, where the table's last timing
+    counts from the command's start instead of the process's)."""
+    try:
+        fields = Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()  # from the state field (3rd) on
+        start_ticks = int(fields[19])  # field 22: start time in clock ticks after boot
+        return float(Path("/proc/uptime").read_text().split()[0]) - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
 
 
 def precompile_note() -> str | None:
