@@ -41,21 +41,25 @@ def _plain_fused(group: dict[str, Any]) -> bool:
 
 @torch.no_grad()
 def adam_step(optimizer: torch.optim.Optimizer) -> None:
-    """``optimizer.step()`` for an optimiser made by :func:`adam`: per parameter group, the parameters that have a
-    gradient get one ``torch._fused_adam_`` call per (device, dtype), with the state ``torch.optim.Adam`` keeps
-    (``step`` float32 on the parameter's device, ``exp_avg``, ``exp_avg_sq``; created as it creates them), so the
-    two can be mixed on one optimiser. Anything else (the default Adam, amsgrad, a tensor learning rate, a build without
-    the kernel) goes through ``optimizer.step()``; a sparse gradient raises as there."""
+    """``optimizer.step()`` for an optimiser made by :func:`adam`: the parameters that have a gradient get one
+    ``torch._fused_adam_`` call per (device, dtype, hyperparameters), across groups (the keyframe-pose optimiser has a
+    group per keyframe, all alike: one call, not one per keyframe; the kernel updates each tensor on its own, so
+    the grouping changes no number), with the state ``torch.optim.Adam`` keeps (``step`` float32 on the parameter's
+    device, ``exp_avg``, ``exp_avg_sq``; created as it creates them), so the two can be mixed on one optimiser.
+    Anything else (the default Adam, amsgrad, a tensor learning rate, a build without the kernel) goes through
+    ``optimizer.step()``; a sparse gradient raises as there."""
     if (not isinstance(optimizer, torch.optim.Adam) or not hasattr(torch, "_fused_adam_")
             or not all(_plain_fused(g) for g in optimizer.param_groups)):
         optimizer.step()
         return
     state = optimizer.state
+    calls: dict[tuple, tuple[list, list, list, list, list]] = {}
     for group in optimizer.param_groups:
-        by_kind: dict[tuple[torch.device, torch.dtype], tuple[list, list, list, list, list]] = {}
-        for p in group["params"]:
-            if p.grad is None:
-                continue
+        with_grad = [p for p in group["params"] if p.grad is not None]
+        if not with_grad:  # a keyframe outside this mapping window
+            continue
+        settings = (group["lr"], *group["betas"], group["weight_decay"], group["eps"])
+        for p in with_grad:
             if p.grad.is_sparse:
                 raise RuntimeError("Adam does not support sparse gradients, please consider SparseAdam instead")
             s = state[p]
@@ -63,15 +67,13 @@ def adam_step(optimizer: torch.optim.Optimizer) -> None:
                 s["step"] = torch.zeros((), dtype=torch.float32, device=p.device)
                 s["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
                 s["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-            lists = by_kind.setdefault((p.device, p.dtype), ([], [], [], [], []))
+            lists = calls.setdefault((p.device, p.dtype, *settings), ([], [], [], [], []))
             for out, value in zip(lists, (p, p.grad, s["exp_avg"], s["exp_avg_sq"], s["step"]), strict=True):
                 out.append(value)
-        beta1, beta2 = group["betas"]
-        for params, grads, avgs, avg_sqs, steps in by_kind.values():
-            torch._foreach_add_(steps, 1)
-            torch._fused_adam_(params, grads, avgs, avg_sqs, [], steps, amsgrad=False, lr=group["lr"],
-                               beta1=beta1, beta2=beta2, weight_decay=group["weight_decay"], eps=group["eps"],
-                               maximize=False, grad_scale=None, found_inf=None)
+    for (_, _, lr, beta1, beta2, weight_decay, eps), (params, grads, avgs, avg_sqs, steps) in calls.items():
+        torch._foreach_add_(steps, 1)
+        torch._fused_adam_(params, grads, avgs, avg_sqs, [], steps, amsgrad=False, lr=lr, beta1=beta1, beta2=beta2,
+                           weight_decay=weight_decay, eps=eps, maximize=False, grad_scale=None, found_inf=None)
 
 
 def preload() -> None:
