@@ -414,7 +414,10 @@ def _prepare_out_dir(out_dir: str | Path, overwrite: bool = False) -> Path:
                                   "replaces a capture written by voxfusion synth: choose a new folder")
         for name in entries:
             path = out / name
-            shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                path.unlink()
     out.mkdir(parents=True, exist_ok=True)
     return out
 

@@ -6,7 +6,7 @@ The :class:`Mapper` owns the sparse voxel map, the decoder and their optimiser. 
 1. **Allocate** a voxel for every back-projected depth point that falls in no voxel yet (the frame's depth
    was already cleaned of unsupported outliers by :func:`~.framedata.frame_to_device`), then add the
    frame's **observation evidence** (depth points per voxel, free-space rays per voxel) and deactivate
-   voxels that rays have mostly seen as empty (:mod:`.evidence`), so they never render a surface.
+   voxels that rays have mostly seen as empty (:mod:`..map.evidence`), so they never render a surface.
 2. **Keyframe test**: the frame becomes a keyframe when ``N_c / N_o`` (voxels it would newly allocate /
    voxels it observes that exist already, counted before step 1) exceeds ``keyframe_ratio``, or when no
    keyframe was taken for ``keyframe_max_interval`` frames. The first frame is always a keyframe.
@@ -81,7 +81,7 @@ class MappingConfig:
     """Neighbourhood-support outlier filter applied to every frame's depth where it enters the engine
     (:func:`~.framedata.frame_to_device`), for tracking and mapping alike; ``enabled=false`` turns it off."""
     evidence: EvidenceConfig = dataclasses.field(default_factory=EvidenceConfig)
-    """Per-voxel observation evidence and the active mask (:mod:`.evidence`); ``enabled=false`` turns it
+    """Per-voxel observation evidence and the active mask (:mod:`..map.evidence`); ``enabled=false`` turns it
     off (every allocated voxel stays active)."""
     alloc_stride: int = 1
     """Back-project every ``alloc_stride``-th pixel (per axis) for allocation, surface marks and the evidence
@@ -157,7 +157,7 @@ class MappingConfig:
 class Keyframe:
     """A frame kept for joint optimisation.
 
-    Its pose is ``T_base @ exp(delta)`` (right perturbation, :mod:`.lie`): ``T_base`` ``[4, 4]`` float64
+    Its pose is ``T_base @ exp(delta)`` (right perturbation, :mod:`..lie`): ``T_base`` ``[4, 4]`` float64
     camera-to-world as tracked, ``delta`` a trainable 6-vector refined by joint mapping.
 
     Threads: ``delta`` is updated in place by the mapping thread's optimiser; other threads read
@@ -457,7 +457,7 @@ class Mapper:
         """Fuse several frames in order, as :meth:`integrate` on each with ``optimize=False`` and then on the last
         with ``optimize``, with the map's bookkeeping done once for all of them: one allocation
         (:meth:`~.map.VoxelMap.allocate_counting_batch`), one surface-mark update and one evidence update
-        (:func:`~.evidence.observe_frames`). A realtime mapper fuses the frames tracked since its last round so
+        (:func:`~..map.evidence.observe_frames`). A realtime mapper fuses the frames tracked since its last round so
         (on an H100 a frame fused alone cost ~11 ms of a ~240 ms round, 7 of them per round).
 
         Each frame's keyframe test sees the counts it would have seen in turn; what differs from fusing them one

@@ -1,7 +1,7 @@
 """Tracking (paper §4.2): one camera pose per frame, optimised against a frozen map snapshot.
 
 The pose is ``T_world_cam = T_prior @ exp(xi)`` with ``xi`` a 6-vector (translation, rotation vector)
-in the camera frame (right perturbation, see :mod:`.lie`), optimised with Adam through the volume
+in the camera frame (right perturbation, see :mod:`..lie`), optimised with Adam through the volume
 renderer on ``rays`` pixels sampled each iteration where depth is valid (and confident).
 
 Priors (:func:`predict_pose`): constant velocity (default), the paper's zero motion, or, when frames

@@ -16,7 +16,7 @@ points, moved into the world with the right pose, must sit on its zero level set
   geometry cannot see, such as sliding along a wall; optionally (``w_photo_blurred``) the same term against
   a Gaussian-blurred copy of that image in a stage of its own between the coarse levels and the finest
   (an image pyramid's coarse level: a wider basin for the sharp term to polish);
-* Jacobian w.r.t. a right perturbation ``T exp(xi)``, ``xi = (rho, phi)`` (:mod:`.lie`): with
+* Jacobian w.r.t. a right perturbation ``T exp(xi)``, ``xi = (rho, phi)`` (:mod:`..lie`): with
   ``g = d sdf / dx`` (autograd w.r.t. the points, one backward pass) and ``g_c = R^T g``,
   ``J_i = [g_c, p_i x g_c]`` (``d x / d rho = R``, ``d x / d phi = -R [p_i]_x``); every term has this form,
   with ``g`` its residual's gradient with respect to the world point (``R_ref^T n`` for the frame term);

@@ -221,6 +221,21 @@ def test_run_without_config_chooses_the_preset(tiny_capture: Path, tmp_path: Pat
     assert '"wall_s"' in metrics
 
 
+def test_process_age_is_the_time_since_the_process_started():
+    """The run table's whole-command time counts from the process's start (``/proc``); in a new process it is
+    between 0 and the time the parent saw the child run (a wrong field of ``/proc/self/stat`` is off by hours)."""
+    import subprocess
+    import sys
+    import time
+
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-c", "from voxfusion.commands.run import process_age_s; "
+                          "print(process_age_s())"], capture_output=True, text=True, check=True).stdout
+    elapsed = time.monotonic() - t0
+    age = float(out)
+    assert 0.0 <= age <= elapsed + 0.05, (age, elapsed)
+
+
 def test_run_with_a_gpu_preset_on_cpu_warns_once(tiny_capture: Path, tmp_path: Path):
     out = _run(["run", str(tiny_capture), "--config", "synthetic", "--device", "cpu", "--out", str(tmp_path / "run"),
                 *[a for s in TINY_SETS for a in ("--set", s)]])
