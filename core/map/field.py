@@ -29,6 +29,7 @@ from torch import nn
 
 from ..compiled import CompiledFunction
 from ..errors import ConfigError, ShapeError, ValidationError
+from . import native
 from .morton import CORNER_OFFSETS
 from .voxel_map import VoxelMap
 
@@ -292,10 +293,82 @@ def interpolate_unchecked(voxel_map: VoxelMap, points_world: torch.Tensor, voxel
     themselves; arguments as for :func:`interpolate`.
     """
     if local_xyz is None:
+        if _native_applies(voxel_map, points_world, voxel_idx):
+            return _NativeInterpolation.apply(voxel_map.embeddings, points_world, voxel_map, voxel_idx)
         local_xyz = local_coords(voxel_map, points_world, voxel_idx)
     emb = voxel_map.embeddings
     w = trilinear_weights(local_xyz).to(emb.dtype)
     return _WeightedCornerSum.apply(emb, voxel_map.voxel_vertex_ids, voxel_idx, w)
+
+
+def _native_applies(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor) -> bool:
+    """Whether the compiled kernel (:func:`_native_forward`) serves: float32 points and embeddings on a CPU, int64
+    indices, eager (never inside a graph ``torch.compile`` traces), and the kernel built
+    (:func:`~.native.interpolation_kernels`)."""
+    emb = voxel_map.embeddings
+    return (points_world.device.type == "cpu" and emb.device.type == "cpu" and points_world.dtype == torch.float32
+            and emb.dtype == torch.float32 and voxel_idx.dtype == torch.int64
+            and not torch.compiler.is_compiling() and native.interpolation_kernels() is not None)
+
+
+def _native_forward(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The interpolation by the compiled kernel, no autograd: ``(features [K, D], local coordinates [K, 3] clamped
+    to [0, 1], inside [K] uint8: bit ``a`` set where axis ``a`` was not clamped)``. Only where
+    :func:`_native_applies`."""
+    emb = voxel_map.embeddings.detach().contiguous()
+    pts = points_world.detach().contiguous()
+    ids, coords = voxel_map.voxel_vertex_ids.contiguous(), voxel_map.voxel_coords.contiguous()
+    idx = voxel_idx.contiguous()
+    k, d = pts.shape[0], emb.shape[1]
+    out, loc = pts.new_empty(k, d), pts.new_empty(k, 3)
+    inside = torch.empty(k, dtype=torch.uint8)
+    native.interpolation_kernels().forward(emb.data_ptr(), d, ids.data_ptr(), coords.data_ptr(), pts.data_ptr(),
+                                           idx.data_ptr(), k, voxel_map.voxel_size_m, out.data_ptr(), loc.data_ptr(),
+                                           inside.data_ptr())
+    return out, loc, inside
+
+
+def _native_backward(emb: torch.Tensor, vertex_ids: torch.Tensor, voxel_idx: torch.Tensor, voxel_size_m: float,
+                     loc: torch.Tensor, inside: torch.Tensor, grad_out: torch.Tensor, want_emb: bool,
+                     want_points: bool) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """The gradients of :func:`_native_forward`'s features (``grad_out [K, D]``) with respect to the embeddings
+    (``[V, D]``, when ``want_emb``) and the points (``[K, 3]`` metres, when ``want_points``)."""
+    g = grad_out.to(torch.float32).contiguous()
+    emb, ids, idx = emb.detach().contiguous(), vertex_ids.contiguous(), voxel_idx.contiguous()
+    grad_emb = torch.zeros_like(emb) if want_emb else None
+    grad_points = loc.new_empty(loc.shape) if want_points else None
+    native.interpolation_kernels().backward(
+        emb.data_ptr(), emb.shape[1], ids.data_ptr(), idx.data_ptr(), idx.shape[0], voxel_size_m, loc.data_ptr(),
+        inside.data_ptr(), g.data_ptr(), 0 if grad_emb is None else grad_emb.data_ptr(),
+        0 if grad_points is None else grad_points.data_ptr())
+    return grad_emb, grad_points
+
+
+class _NativeInterpolation(torch.autograd.Function):
+    """:func:`interpolate_unchecked` on a CPU as one compiled loop per direction (``interpolation.c``, loaded by
+    :mod:`.native`): ``(emb [V, D], points_world [K, 3], voxel_map) -> [K, D]``, differentiable in ``emb`` (the map's
+    embeddings, passed so autograd sees them) and ``points_world`` (first order). The same arithmetic as
+    :func:`local_coords`, :func:`trilinear_weights` and :class:`_WeightedCornerSum` (the reference it is tested
+    against, to float32 rounding: the sums are accumulated in another order). On the 2-core AMD EPYC a mapping
+    iteration of the synthetic room (~5600 samples, forward and backward) took 14.5 against 16.5 ms with the
+    operators (medians of 8 rounds, in turn in one process); ``voxel_idx`` must be valid, as for the reference."""
+
+    @staticmethod
+    def forward(ctx, emb: torch.Tensor, points_world: torch.Tensor, voxel_map: VoxelMap,  # noqa: ANN001, ANN205
+                voxel_idx: torch.Tensor):
+        out, loc, inside = _native_forward(voxel_map, points_world, voxel_idx)
+        ctx.save_for_backward(emb, voxel_map.voxel_vertex_ids, voxel_idx, loc, inside)
+        ctx.voxel_size_m = voxel_map.voxel_size_m
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out: torch.Tensor):  # noqa: ANN001, ANN205
+        emb, ids, idx, loc, inside = ctx.saved_tensors
+        grad_emb, grad_points = _native_backward(emb, ids, idx, ctx.voxel_size_m, loc, inside, grad_out,
+                                                 ctx.needs_input_grad[0], ctx.needs_input_grad[1])
+        return grad_emb, grad_points, None, None
 
 
 class _WeightedCornerSum(torch.autograd.Function):
@@ -372,6 +445,12 @@ def sdf_with_gradient(voxel_map: VoxelMap, decoder: SDFDecoder, points_world: to
     this with. No host synchronisation."""
     if not decoder.has_plain_gradient:
         return sdf_with_gradient_reference(voxel_map, decoder, points_world, voxel_idx)
+    if _native_applies(voxel_map, points_world, voxel_idx):
+        feats, loc, inside = _native_forward(voxel_map, points_world, voxel_idx)
+        sdf, g_feat = decoder.sdf_and_input_gradient(feats)
+        _, grad = _native_backward(voxel_map.embeddings, voxel_map.voxel_vertex_ids, voxel_idx,
+                                   voxel_map.voxel_size_m, loc, inside, g_feat, want_emb=False, want_points=True)
+        return sdf, grad
     v = voxel_map.voxel_size_m
     origin = voxel_map.voxel_coords.index_select(0, voxel_idx).to(points_world.dtype) * v
     raw = (points_world - origin) / v
@@ -516,16 +595,23 @@ class NeuralField:
 
     def __call__(self, points_world: torch.Tensor, voxel_idx: torch.Tensor,
                  with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
-        loc = local_coords(self.voxel_map, points_world, voxel_idx)
+        loc = self._local_coords(points_world, voxel_idx)
         feats = interpolate(self.voxel_map, points_world, voxel_idx, loc)
         return self.decoder(feats, loc, with_color=with_color)
+
+    def _local_coords(self, points_world: torch.Tensor, voxel_idx: torch.Tensor) -> torch.Tensor | None:
+        """The in-voxel coordinates where the decoder encodes them (``local_coord_freqs``), else None (the
+        interpolation computes its own, in one pass on a CPU)."""
+        if self.decoder.config.local_coord_freqs == 0:
+            return None
+        return local_coords(self.voxel_map, points_world, voxel_idx)
 
     def evaluate_unchecked(self, points_world: torch.Tensor, voxel_idx: torch.Tensor,
                            with_color: bool = True) -> tuple[torch.Tensor, torch.Tensor | None]:
         """As calling the field, without the check that every ``voxel_idx`` is >= 0, so it never waits for
         the device: for fixed-shape callers that pass ``idx.clamp(min=0)`` and mask the points outside the
         map themselves (their values are meaningless)."""
-        loc = local_coords(self.voxel_map, points_world, voxel_idx)
+        loc = self._local_coords(points_world, voxel_idx)
         feats = interpolate_unchecked(self.voxel_map, points_world, voxel_idx, loc)
         return self.decoder(feats, loc, with_color=with_color)
 

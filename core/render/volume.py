@@ -58,6 +58,8 @@ __all__ = [
     "band_jitter",
     "band_sample_count",
     "render_band",
+    "band_field_samples",
+    "BandSamples",
     "RenderedImage",
     "render_depth_image",
 ]
@@ -535,6 +537,18 @@ def band_sample_count(config: RenderConfig, voxel_size_m: float, n_free: int, n_
     return n_band, n_free + n_band
 
 
+class BandSamples(NamedTuple):
+    """The field at :func:`render_band`'s samples, before compositing: ``sdf [N, S]`` metres (0 where ``mask`` is
+    False), ``rgb [N, S, 3]`` or None, ``t [N, S]`` ascending sample parameters (t-units, no gradient), ``mask [N, S]``
+    bool (the sample lies in an allocated voxel), ``dir_norm [N]`` metres per unit ``t``."""
+
+    sdf: torch.Tensor
+    rgb: torch.Tensor | None
+    t: torch.Tensor
+    mask: torch.Tensor
+    dir_norm: torch.Tensor
+
+
 def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torch.Tensor, dirs: torch.Tensor,
                 depth: torch.Tensor, config: RenderConfig, n_free: int, free_range_m: float,
                 training: bool = True, generator: torch.Generator | None = None,
@@ -543,7 +557,19 @@ def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torc
     """Render rays of known depth from a fixed number of samples per ray (:func:`band_samples`): the
     mapping renderer. Same compositing and outputs as :func:`render_rays`, but every shape is fixed by
     ``N`` and the config (``n_band``, default ``ceil(2 tr / step)``, keeps :func:`render_rays`' sample spacing
-    in the band).
+    in the band). :func:`band_field_samples` then :func:`composite`; arguments as there."""
+    s = band_field_samples(voxel_map, field, origins, dirs, depth, config, n_free, free_range_m, training, generator,
+                           n_band, compact, jitter)
+    return composite(s.sdf, s.rgb, s.t, s.mask, s.dir_norm, s.mask.any(1), config)
+
+
+def band_field_samples(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torch.Tensor, dirs: torch.Tensor,
+                       depth: torch.Tensor, config: RenderConfig, n_free: int, free_range_m: float,
+                       training: bool = True, generator: torch.Generator | None = None,
+                       n_band: int | None = None, compact: bool | None = None,
+                       jitter: torch.Tensor | None = None) -> BandSamples:
+    """:func:`render_band`'s samples and the field at them (:class:`BandSamples`), what :func:`composite` (or the
+    mapper's fused compositing and losses, :func:`~..losses.band_losses`) takes.
 
     Samples outside allocated voxels get no weight and no loss, so their field values are never used. With
     ``compact`` False they are evaluated anyway, at a clamped voxel index, and masked: nothing waits for the
@@ -571,13 +597,10 @@ def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torc
     n_band, _ = band_sample_count(config, voxel_map.voxel_size_m, n_free, n_band)
     t = band_samples(depth.to(voxel_map.device, dtype), dn, n_band, n_free, config.truncation_m, free_range_m,
                      training, generator, jitter).detach()
-    pts = origins[:, None, :] + dirs[:, None, :] * t[:, :, None]  # [N, S, 3]
     n, s = t.shape
-    flat = pts.reshape(-1, 3)
     if voxel_map.n_voxels == 0:  # nothing to evaluate (as render_rays: no hits)
-        zeros = t.new_zeros(n, s)
-        mask = torch.zeros(n, s, dtype=torch.bool, device=t.device)
-        return composite(zeros, None, t, mask, dn, mask.any(1), config)
+        return BandSamples(t.new_zeros(n, s), None, t, torch.zeros(n, s, dtype=torch.bool, device=t.device), dn)
+    flat = (origins[:, None, :] + dirs[:, None, :] * t[:, :, None]).reshape(-1, 3)  # [N S, 3]
     idx = voxel_map.lookup_voxels(flat.detach())
     mask = (idx >= 0).reshape(n, s)
     evaluate = NeuralField(voxel_map, field).evaluate_unchecked if isinstance(field, SDFDecoder) else field
@@ -590,9 +613,7 @@ def render_band(voxel_map: VoxelMap, field: SDFDecoder | SDFField, origins: torc
         rgb = None if rgb_in is None else rgb_in.new_zeros(n * s, 3).index_copy(0, inside, rgb_in)
     else:  # an SDFField must then accept points outside the map too (tests: analytic surfaces)
         sdf, rgb = evaluate(flat, idx.clamp(min=0))
-    sdf = sdf.reshape(n, s)
-    rgb = rgb.reshape(n, s, 3) if rgb is not None else None
-    return composite(sdf, rgb, t, mask, dn, mask.any(1), config)
+    return BandSamples(sdf.reshape(n, s), None if rgb is None else rgb.reshape(n, s, 3), t, mask, dn)
 
 
 class RenderedImage(NamedTuple):

@@ -34,13 +34,21 @@ from ..depth_filter import DepthFilterConfig
 from ..errors import ConfigError, ValidationError
 from ..framedata import FrameData, flat_uv, sample_valid_pixels
 from ..lie import perturb_right
-from ..losses import LossConfig, LossTerms, compute_losses
+from ..losses import LossConfig, LossTerms, band_losses, compute_losses
 from ..map import VoxelMap
 from ..map.evidence import EvidenceConfig, observe_frames
 from ..map.field import FieldConfig, SDFDecoder, query
 from ..mesh.colors import ColorView
 from ..optim import adam, adam_step
-from ..render.volume import RenderConfig, band_jitter, band_sample_count, camera_directions, render_band, render_rays
+from ..render.volume import (
+    RenderConfig,
+    band_field_samples,
+    band_jitter,
+    band_sample_count,
+    camera_directions,
+    composite,
+    render_rays,
+)
 
 if TYPE_CHECKING:
     from .presets import VoxFusionConfig
@@ -332,18 +340,23 @@ def _window_directions(window: list[Keyframe], flat: list[torch.Tensor]) -> torc
 def band_loss(voxels: VoxelMap, decoder: SDFDecoder, origins: torch.Tensor, dirs: torch.Tensor, depth_gt: torch.Tensor,
               color_gt: torch.Tensor | None, color_valid: torch.Tensor | None, jitter: torch.Tensor,
               render: RenderConfig, loss: LossConfig, n_free: int, free_range_m: float, n_band: int,
-              compact: bool | None = False
+              compact: bool | None = False, fused: bool = False
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One mapping iteration's forward pass with the ``band`` sampler: :func:`~.render.render_band` (stratum positions
-    ``jitter [N, S]``, drawn by the caller; ``compact`` as there) and :func:`~.losses.compute_losses`, as the tuple
-    ``(total, color, depth, free_space, sdf)`` (:class:`~.losses.LossTerms`' fields). Rays ``origins`` / ``dirs
-    [N, 3]``, observed depth ``[N]``, colours ``[N, 3]`` or None. A free function of tensors and configuration with no
-    random draw, and with ``compact`` False no read-back either, so that ``mapping.compile`` can compile it
-    (:data:`COMPILED_BAND_LOSS`); :meth:`Mapper.step` calls it eagerly otherwise (the reference the tests hold the
-    compiled one to)."""
-    out = render_band(voxels, decoder, origins, dirs, depth_gt, render, n_free, free_range_m, training=True,
-                      n_band=n_band, compact=compact, jitter=jitter)
-    t = compute_losses(out, depth_gt, color_gt, loss, color_valid)
+    """One mapping iteration's forward pass with the ``band`` sampler: :func:`~.render.band_field_samples` (stratum
+    positions ``jitter [N, S]``, drawn by the caller; ``compact`` as there), then the compositing and the loss terms,
+    as the tuple ``(total, color, depth, free_space, sdf)`` (:class:`~.losses.LossTerms`' fields): with ``fused``
+    in one autograd function with a written-out backward (:func:`~.losses.band_losses`, an eager mapper's), else
+    :func:`~.render.composite` and :func:`~.losses.compute_losses` (the reference, and what ``mapping.compile``
+    compiles: Inductor fuses those operators itself). Rays ``origins`` / ``dirs [N, 3]``, observed depth ``[N]``,
+    colours ``[N, 3]`` or None. A free function of tensors and configuration with no random draw, and with
+    ``compact`` False no read-back either, so that ``mapping.compile`` can compile it (:data:`COMPILED_BAND_LOSS`)."""
+    s = band_field_samples(voxels, decoder, origins, dirs, depth_gt, render, n_free, free_range_m, training=True,
+                           n_band=n_band, compact=compact, jitter=jitter)
+    if fused:
+        t = band_losses(s, depth_gt, color_gt, render, loss, color_valid)
+    else:
+        out = composite(s.sdf, s.rgb, s.t, s.mask, s.dir_norm, s.mask.any(1), render)
+        t = compute_losses(out, depth_gt, color_gt, loss, color_valid)
     return t.total, t.color, t.depth, t.free_space, t.sdf
 
 
@@ -563,7 +576,7 @@ class Mapper:
             terms = LossTerms(*(COMPILED_BAND_LOSS if compiled else band_loss)(
                 self.voxels, self.decoder, o, d, depth_gt, color_gt, color_valid, jitter, self.render_config,
                 self.loss_config, self.config.free_samples, self.config.free_range_voxels * self.voxels.voxel_size_m,
-                n_band, compact=False if compiled else self.config.compact_samples))
+                n_band, compact=False if compiled else self.config.compact_samples, fused=not compiled))
         else:
             t_far = depth_gt + self.render_config.truncation_m
             out = render_rays(self.voxels, self.decoder, o, d, self.render_config, training=True,

@@ -120,6 +120,22 @@ def test_gradients_reach_embeddings_and_decoder():
         NeuralField(vm, SDFDecoder(FieldConfig(embed_dim=8)))
 
 
+@pytest.fixture(params=["kernel", "operators"])
+def interpolation_path(request, monkeypatch) -> str:
+    """Runs a test with the CPU's compiled interpolation kernel (``core/map/interpolation.c``) and with the PyTorch
+    operators (``VOXFUSION_NATIVE=0``; what CUDA runs), so both are held to the plain reference."""
+    from voxfusion.core.map import native
+
+    if request.param == "kernel":
+        if native._compiler() is None:
+            pytest.skip("no C compiler: the interpolation kernel cannot be built here")
+        monkeypatch.setenv(native.ENV_SWITCH, "1")
+        assert native.interpolation_kernels() is not None, "the C compiler could not build core/map/interpolation.c"
+    else:
+        monkeypatch.setenv(native.ENV_SWITCH, "0")
+    return request.param
+
+
 def _map_with_points_inside(embed_dim: int, n_allocated: int, n_points: int, seed: int):
     """A random map, points that fall in its voxels with their voxel indices, and a random output gradient."""
     vm = VoxelMap(0.2, embed_dim=embed_dim, seed=0)
@@ -170,11 +186,11 @@ def test_trilinear_weights_per_column_and_as_outer_products_are_the_same_numbers
 
 
 @pytest.mark.parametrize("n_points", [3000, 40])
-def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_points: int):
-    """The fast path (embedding_bag forward, hand-written backward) against the plain gather-and-sum:
-    features, and gradients to both the embeddings and the points (the trackers differentiate through the
-    trilinear weights). 3000 points outnumber the voxels (the table gradient accumulates per voxel first),
-    40 do not (one accumulation over the corner rows)."""
+def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_points: int, interpolation_path: str):
+    """The fast paths (the compiled kernel; embedding_bag forward with a hand-written backward) against the plain
+    gather-and-sum: features, and gradients to both the embeddings and the points (the trackers differentiate
+    through the trilinear weights). 3000 points outnumber the voxels (the operators accumulate the table gradient
+    per voxel first), 40 do not (one accumulation over the corner rows)."""
     from voxfusion.core.map.field import interpolate_reference, interpolate_unchecked
 
     vm, pts, idx, out_grad = _map_with_points_inside(16, 400, n_points, seed=1)
@@ -190,7 +206,7 @@ def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_poi
         torch.testing.assert_close(fast, ref, rtol=1e-4, atol=1e-5)  # float32 sums in another order
 
 
-def test_fused_interpolation_backward_is_reproducible_and_serves_a_frozen_table():
+def test_fused_interpolation_backward_is_reproducible_and_serves_a_frozen_table(interpolation_path: str):
     """Offline runs are bit-reproducible on CPU, so the hand-written backward must be too; and the SDF
     tracker asks only for the points' gradient, with a table that needs none."""
     from voxfusion.core.map.field import interpolate_unchecked
@@ -321,7 +337,7 @@ def test_geometry_only_decoding_is_the_sdf_of_the_full_decoder_with_its_gradient
 
 
 @pytest.mark.parametrize("sdf_layers", [1, 2, 3])
-def test_sdf_with_gradient_matches_autograd_through_the_field(sdf_layers: int):
+def test_sdf_with_gradient_matches_autograd_through_the_field(sdf_layers: int, interpolation_path: str):
     """The SDF tracker's field query (forward and backward written out, no autograd graph) against autograd
     through the same interpolation and decoder: values and spatial gradients, for 1-3 hidden layers, with
     points on voxel faces and corners (where the local coordinate is exactly 0 or 1) among random ones, and
@@ -377,3 +393,65 @@ def test_corner_weight_gradient_gathers_per_voxel_or_per_sample_alike():
         torch.testing.assert_close(got, (rows * grad_out[:, None, :]).sum(-1), rtol=1e-6, atol=1e-6)
         other = torch.nn.functional.embedding(vertex_ids, emb).reshape(30, 128).index_select(0, voxel_idx)
         assert torch.equal(got, torch.bmm(other.reshape(k, 8, 16), grad_out[:, :, None]).squeeze(2))
+
+
+def test_interpolation_kernel_clamps_like_the_operators_at_and_beyond_voxel_faces(monkeypatch):
+    """Points exactly on voxel faces and corners, and a little outside their voxel (the clamped local coordinate,
+    whose gradient is zero along the clamped axis), through the kernel and the operators: the same features and
+    gradients."""
+    from voxfusion.core.map import native
+    from voxfusion.core.map.field import interpolate_unchecked
+
+    if native._compiler() is None:
+        pytest.skip("no C compiler: the interpolation kernel cannot be built here")
+    vm, pts, idx, out_grad = _map_with_points_inside(16, 300, 600, seed=5)
+    origin = vm.voxel_coords[idx].to(pts.dtype) * vm.voxel_size_m
+    pts = pts.clone()
+    pts[:10] = origin[:10]  # low corners: local (0, 0, 0)
+    pts[10:20] = origin[10:20] + vm.voxel_size_m  # high corners
+    pts[20:30, 0] = origin[20:30, 0] - 0.01  # 1 cm outside along x: clamped to 0
+    pts[30:40, 2] = origin[30:40, 2] + vm.voxel_size_m + 0.01  # clamped to 1 along z
+    results = {}
+    for switch in ("1", "0"):
+        monkeypatch.setenv(native.ENV_SWITCH, switch)
+        x = pts.clone().requires_grad_(True)
+        vm.embeddings.grad = None
+        feats = interpolate_unchecked(vm, x, idx)
+        feats.backward(out_grad)
+        results[switch] = (feats.detach(), vm.embeddings.grad.clone(), x.grad.clone())
+    assert results["1"][2][20:30, 0].abs().max() == 0 and results["1"][2][30:40, 2].abs().max() == 0
+    for fast, ref in zip(results["1"], results["0"], strict=True):
+        torch.testing.assert_close(fast, ref, rtol=1e-4, atol=1e-5)
+
+
+def test_interpolation_kernel_build_failure_leaves_one_warning_and_the_operators(monkeypatch, tmp_path, caplog):
+    """Where the C compiler fails (here: ``CC=false``), the first call logs one warning, later calls stay quiet,
+    and the interpolation runs as PyTorch operators with the same results; a compiler that works builds the library
+    once into the cache and later processes load it from there."""
+    import logging
+
+    from voxfusion.core.map import native
+    from voxfusion.core.map.field import interpolate_reference, interpolate_unchecked
+
+    monkeypatch.setenv("VOXFUSION_CACHE", str(tmp_path))
+    monkeypatch.setenv(native.ENV_SWITCH, "1")
+    monkeypatch.setenv("CC", "false")
+    monkeypatch.setattr(native, "_loaded", {})
+    vm, pts, idx, _ = _map_with_points_inside(8, 100, 200, seed=6)
+    with caplog.at_level(logging.WARNING, logger="voxfusion.map.native"):
+        assert native.interpolation_kernels() is None
+        feats = interpolate_unchecked(vm, pts, idx)
+        assert native.interpolation_kernels() is None
+    assert sum("interpolation kernel" in r.getMessage() for r in caplog.records) == 1
+    torch.testing.assert_close(feats, interpolate_reference(vm, pts, idx), rtol=1e-5, atol=1e-6)
+    assert not list(tmp_path.rglob("*.so")) and not list(tmp_path.rglob("*.tmp*"))  # nothing half-written left
+
+    if native.shutil.which("cc") is None and native.shutil.which("gcc") is None:
+        return
+    monkeypatch.delenv("CC")
+    monkeypatch.setattr(native, "_loaded", {})
+    kernels = native.interpolation_kernels()
+    assert kernels is not None and kernels.path.parent == tmp_path / "native" and kernels.path.exists()
+    built = kernels.path.stat().st_mtime_ns
+    monkeypatch.setattr(native, "_loaded", {})  # a new process: loads the cached library, does not build it again
+    assert native.interpolation_kernels().path == kernels.path and kernels.path.stat().st_mtime_ns == built

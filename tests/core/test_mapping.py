@@ -445,3 +445,44 @@ def test_a_long_batch_is_fused_in_bounded_passes_and_frames_of_other_sizes_alone
     assert [opt for n, opt in passes[1:] if n <= 3] == [False] * (len(passes) - 2) + [True]
     with pytest.raises(ValidationError):
         m.integrate_batch([])
+
+
+def test_a_mapping_iterations_fast_paths_give_the_plain_operators_gradients(monkeypatch):
+    """One mapping iteration (the band sampler, compact samples, a window whose poses train) with the CPU's fast
+    paths - the fused compositing and losses (:func:`~voxfusion.core.losses.band_losses`) and the compiled
+    interpolation kernel - against the plain operators through autograd: the same loss, and the same gradients
+    for the embeddings, the decoder and the keyframe poses, to float32 rounding."""
+    from voxfusion.core.map import native
+    from voxfusion.core.render.volume import band_jitter, band_sample_count
+    from voxfusion.core.slam.mapping import _window_colors, band_loss, window_rays
+
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=5", "mapping.iters=2",
+                                           "mapping.keyframe_max_interval=1"])
+    frames = list(SyntheticCapture(SyntheticConfig(n_frames=4, width=64, height=48)).frames())
+    m = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu", seed=2)
+    for f in frames:
+        m.integrate(frame_to_device(f, "cpu"), f.T_world_cam)
+    window = list(m.keyframes)
+    for kf in window[1:]:  # corrections of a keyframe's usual size
+        kf.delta.data = torch.tensor([1.0, -2.0, 1.5, 0.5, -1.0, 2.0], dtype=torch.float64) * 1e-3
+    n_band, k = band_sample_count(cfg.render, cfg.voxel_size_m, cfg.mapping.free_samples, cfg.mapping.band_samples)
+    results = {}
+    for fast in (True, False):
+        monkeypatch.setenv(native.ENV_SWITCH, "1" if fast else "0")
+        if fast and native.interpolation_kernels() is None and native._compiler() is not None:
+            pytest.fail("a C compiler is here but core/map/interpolation.c did not build")
+        gen = torch.Generator().manual_seed(7)
+        o, d, depth, colours = window_rays(window, 64, gen, train_poses=True)
+        color_gt, color_valid = _window_colors(colours, list(depth.split(64)))
+        jitter = band_jitter(o.shape[0], k, o.device, torch.float32, gen)
+        total = band_loss(m.voxels, m.decoder, o, d, depth, color_gt, color_valid, jitter, cfg.render, cfg.loss,
+                          cfg.mapping.free_samples, cfg.mapping.free_range_voxels * cfg.voxel_size_m, n_band,
+                          compact=True, fused=fast)[0]
+        params = [m.voxels.embeddings, *m.decoder.parameters(), *(kf.delta for kf in window[1:])]
+        results[fast] = (total.detach(), torch.autograd.grad(total, params))
+    (fast_total, fast_grads), (ref_total, ref_grads) = results[True], results[False]
+    torch.testing.assert_close(fast_total, ref_total, rtol=1e-5, atol=0)
+    for fast, ref in zip(fast_grads, ref_grads, strict=True):
+        scale = float(ref.abs().max())
+        assert scale > 0
+        torch.testing.assert_close(fast, ref, rtol=1e-3, atol=1e-4 * scale)
