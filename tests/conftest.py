@@ -32,6 +32,24 @@ def pytest_configure(config: pytest.Config) -> None:
         torch.set_num_threads(max(1, usable_cpu_count() // int(workers)))
 
 
+@pytest.fixture(params=["kernel", "operators"])
+def native_path(request, monkeypatch) -> str:
+    """Runs a test with the engine's compiled CPU kernels (``core/native/*.c``) and with the PyTorch operators they
+    replace (``VOXFUSION_NATIVE=0``; what CUDA runs), so both are held to the plain references. The kernel run
+    fails where a C compiler is present but a kernel does not build, and is skipped without a compiler."""
+    from voxfusion.core import native
+
+    if request.param == "kernel":
+        if native._compiler() is None:
+            pytest.skip("no C compiler: the engine's CPU kernels cannot be built here")
+        monkeypatch.setenv(native.ENV_SWITCH, "1")
+        for kernels in (native.interpolation_kernels, native.band_loss_kernels):
+            assert kernels() is not None, f"the C compiler could not build {kernels.__name__}"
+    else:
+        monkeypatch.setenv(native.ENV_SWITCH, "0")
+    return request.param
+
+
 def shared_data_dir() -> Path:
     """``<repo>/../shared/data``: the real RGB-D captures (may not exist)."""
     return (REPO_ROOT / ".." / "shared" / "data").resolve()

@@ -27,9 +27,9 @@ from typing import Literal
 import torch
 from torch import nn
 
+from .. import native
 from ..compiled import CompiledFunction
 from ..errors import ConfigError, ShapeError, ValidationError
-from . import native
 from .morton import CORNER_OFFSETS
 from .voxel_map import VoxelMap
 
@@ -304,7 +304,7 @@ def interpolate_unchecked(voxel_map: VoxelMap, points_world: torch.Tensor, voxel
 def _native_applies(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: torch.Tensor) -> bool:
     """Whether the compiled kernel (:func:`_native_forward`) serves: float32 points and embeddings on a CPU, int64
     indices, eager (never inside a graph ``torch.compile`` traces), and the kernel built
-    (:func:`~.native.interpolation_kernels`)."""
+    (:func:`~..native.interpolation_kernels`)."""
     emb = voxel_map.embeddings
     return (points_world.device.type == "cpu" and emb.device.type == "cpu" and points_world.dtype == torch.float32
             and emb.dtype == torch.float32 and voxel_idx.dtype == torch.int64
@@ -323,9 +323,9 @@ def _native_forward(voxel_map: VoxelMap, points_world: torch.Tensor, voxel_idx: 
     k, d = pts.shape[0], emb.shape[1]
     out, loc = pts.new_empty(k, d), pts.new_empty(k, 3)
     inside = torch.empty(k, dtype=torch.uint8)
-    native.interpolation_kernels().forward(emb.data_ptr(), d, ids.data_ptr(), coords.data_ptr(), pts.data_ptr(),
-                                           idx.data_ptr(), k, voxel_map.voxel_size_m, out.data_ptr(), loc.data_ptr(),
-                                           inside.data_ptr())
+    native.interpolation_kernels().interpolate_forward(
+        emb.data_ptr(), d, ids.data_ptr(), coords.data_ptr(), pts.data_ptr(), idx.data_ptr(), k, voxel_map.voxel_size_m,
+        out.data_ptr(), loc.data_ptr(), inside.data_ptr())
     return out, loc, inside
 
 
@@ -338,7 +338,7 @@ def _native_backward(emb: torch.Tensor, vertex_ids: torch.Tensor, voxel_idx: tor
     emb, ids, idx = emb.detach().contiguous(), vertex_ids.contiguous(), voxel_idx.contiguous()
     grad_emb = torch.zeros_like(emb) if want_emb else None
     grad_points = loc.new_empty(loc.shape) if want_points else None
-    native.interpolation_kernels().backward(
+    native.interpolation_kernels().interpolate_backward(
         emb.data_ptr(), emb.shape[1], ids.data_ptr(), idx.data_ptr(), idx.shape[0], voxel_size_m, loc.data_ptr(),
         inside.data_ptr(), g.data_ptr(), 0 if grad_emb is None else grad_emb.data_ptr(),
         0 if grad_points is None else grad_points.data_ptr())
@@ -346,9 +346,9 @@ def _native_backward(emb: torch.Tensor, vertex_ids: torch.Tensor, voxel_idx: tor
 
 
 class _NativeInterpolation(torch.autograd.Function):
-    """:func:`interpolate_unchecked` on a CPU as one compiled loop per direction (``interpolation.c``, loaded by
-    :mod:`.native`): ``(emb [V, D], points_world [K, 3], voxel_map) -> [K, D]``, differentiable in ``emb`` (the map's
-    embeddings, passed so autograd sees them) and ``points_world`` (first order). The same arithmetic as
+    """:func:`interpolate_unchecked` on a CPU as one compiled loop per direction (``core/native/interpolation.c``,
+    loaded by :mod:`..native`): ``(emb [V, D], points_world [K, 3], voxel_map) -> [K, D]``, differentiable in ``emb``
+    (the map's embeddings, passed so autograd sees them) and ``points_world`` (first order). The same arithmetic as
     :func:`local_coords`, :func:`trilinear_weights` and :class:`_WeightedCornerSum` (the reference it is tested
     against, to float32 rounding: the sums are accumulated in another order). On the 2-core AMD EPYC a mapping
     iteration of the synthetic room (~5600 samples, forward and backward) took 14.5 against 16.5 ms with the

@@ -120,22 +120,6 @@ def test_gradients_reach_embeddings_and_decoder():
         NeuralField(vm, SDFDecoder(FieldConfig(embed_dim=8)))
 
 
-@pytest.fixture(params=["kernel", "operators"])
-def interpolation_path(request, monkeypatch) -> str:
-    """Runs a test with the CPU's compiled interpolation kernel (``core/map/interpolation.c``) and with the PyTorch
-    operators (``VOXFUSION_NATIVE=0``; what CUDA runs), so both are held to the plain reference."""
-    from voxfusion.core.map import native
-
-    if request.param == "kernel":
-        if native._compiler() is None:
-            pytest.skip("no C compiler: the interpolation kernel cannot be built here")
-        monkeypatch.setenv(native.ENV_SWITCH, "1")
-        assert native.interpolation_kernels() is not None, "the C compiler could not build core/map/interpolation.c"
-    else:
-        monkeypatch.setenv(native.ENV_SWITCH, "0")
-    return request.param
-
-
 def _map_with_points_inside(embed_dim: int, n_allocated: int, n_points: int, seed: int):
     """A random map, points that fall in its voxels with their voxel indices, and a random output gradient."""
     vm = VoxelMap(0.2, embed_dim=embed_dim, seed=0)
@@ -186,7 +170,7 @@ def test_trilinear_weights_per_column_and_as_outer_products_are_the_same_numbers
 
 
 @pytest.mark.parametrize("n_points", [3000, 40])
-def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_points: int, interpolation_path: str):
+def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_points: int, native_path: str):
     """The fast paths (the compiled kernel; embedding_bag forward with a hand-written backward) against the plain
     gather-and-sum: features, and gradients to both the embeddings and the points (the trackers differentiate
     through the trilinear weights). 3000 points outnumber the voxels (the operators accumulate the table gradient
@@ -206,7 +190,7 @@ def test_fused_interpolation_matches_the_reference_in_values_and_gradients(n_poi
         torch.testing.assert_close(fast, ref, rtol=1e-4, atol=1e-5)  # float32 sums in another order
 
 
-def test_fused_interpolation_backward_is_reproducible_and_serves_a_frozen_table(interpolation_path: str):
+def test_fused_interpolation_backward_is_reproducible_and_serves_a_frozen_table(native_path: str):
     """Offline runs are bit-reproducible on CPU, so the hand-written backward must be too; and the SDF
     tracker asks only for the points' gradient, with a table that needs none."""
     from voxfusion.core.map.field import interpolate_unchecked
@@ -337,7 +321,7 @@ def test_geometry_only_decoding_is_the_sdf_of_the_full_decoder_with_its_gradient
 
 
 @pytest.mark.parametrize("sdf_layers", [1, 2, 3])
-def test_sdf_with_gradient_matches_autograd_through_the_field(sdf_layers: int, interpolation_path: str):
+def test_sdf_with_gradient_matches_autograd_through_the_field(sdf_layers: int, native_path: str):
     """The SDF tracker's field query (forward and backward written out, no autograd graph) against autograd
     through the same interpolation and decoder: values and spatial gradients, for 1-3 hidden layers, with
     points on voxel faces and corners (where the local coordinate is exactly 0 or 1) among random ones, and
@@ -399,7 +383,7 @@ def test_interpolation_kernel_clamps_like_the_operators_at_and_beyond_voxel_face
     """Points exactly on voxel faces and corners, and a little outside their voxel (the clamped local coordinate,
     whose gradient is zero along the clamped axis), through the kernel and the operators: the same features and
     gradients."""
-    from voxfusion.core.map import native
+    from voxfusion.core import native
     from voxfusion.core.map.field import interpolate_unchecked
 
     if native._compiler() is None:
@@ -430,7 +414,7 @@ def test_interpolation_kernel_build_failure_leaves_one_warning_and_the_operators
     once into the cache and later processes load it from there."""
     import logging
 
-    from voxfusion.core.map import native
+    from voxfusion.core import native
     from voxfusion.core.map.field import interpolate_reference, interpolate_unchecked
 
     monkeypatch.setenv("VOXFUSION_CACHE", str(tmp_path))
@@ -438,7 +422,7 @@ def test_interpolation_kernel_build_failure_leaves_one_warning_and_the_operators
     monkeypatch.setenv("CC", "false")
     monkeypatch.setattr(native, "_loaded", {})
     vm, pts, idx, _ = _map_with_points_inside(8, 100, 200, seed=6)
-    with caplog.at_level(logging.WARNING, logger="voxfusion.map.native"):
+    with caplog.at_level(logging.WARNING, logger="voxfusion.native"):
         assert native.interpolation_kernels() is None
         feats = interpolate_unchecked(vm, pts, idx)
         assert native.interpolation_kernels() is None

@@ -1,6 +1,6 @@
 /* Trilinear interpolation of a voxel map's corner embeddings, forward and backward, one pass over the points.
  *
- * The CPU fast path of voxfusion.core.map.field's interpolation (built and loaded by core/map/native.py); the
+ * The CPU fast path of voxfusion.core.map.field's interpolation (built and loaded by core/native/__init__.py); the
  * PyTorch operators in field.py (local_coords, trilinear_weights, _WeightedCornerSum) are the reference it is
  * tested against, and what every other device runs. Plain C99, no PyTorch headers: it compiles in about a second.
  *

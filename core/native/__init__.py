@@ -1,0 +1,153 @@
+"""The engine's compiled CPU kernels, loaded with :mod:`ctypes`: plain C files beside this module, each the fast path
+of PyTorch operators that stay the reference (the tests hold each kernel to them, and CUDA runs them).
+
+* ``interpolation.c``: trilinear interpolation of a voxel map's corner embeddings, forward and backward
+  (:func:`interpolation_kernels`, used by :mod:`..map.field`);
+* ``band_losses.c``: a mapping iteration's compositing and loss terms, forward and backward
+  (:func:`band_loss_kernels`, used by :func:`..losses.band_losses`).
+
+Why: on a CPU, a mapping iteration (~5000 samples) through PyTorch is ~400 small operators, each with a fixed
+overhead of several microseconds, and a few serial ``index_add_`` passes; a loop in C does the same arithmetic
+without them (numbers in the users' docstrings and ``docs/engine-history.md``).
+
+How: each source is built on first use with the system's C compiler (``$CC``, else ``cc``, ``gcc`` or ``clang``;
+about a second) into the cache (``$VOXFUSION_CACHE/native``, default ``~/.cache/voxfusion/native``), one file per
+source, compiler, flags and CPU, written under a temporary name and renamed, so concurrent processes never load a
+half-written library. Where no compiler works, or with ``VOXFUSION_NATIVE=0``, the accessors return None (after one
+log line per source and process) and callers run the PyTorch operators.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+log = logging.getLogger("voxfusion.native")
+
+__all__ = ["FLAGS", "ENV_SWITCH", "Kernels", "interpolation_kernels", "band_loss_kernels", "cache_dir", "enabled"]
+
+SOURCE_DIR = Path(__file__).resolve().parent
+"""Where the C sources are (installed with the package)."""
+
+FLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-std=c99", "-shared", "-fPIC")
+"""Compiler flags: optimised for the CPU it runs on (the library's name includes the CPU), and no fused
+multiply-adds, which PyTorch's CPU kernels do not make either."""
+
+ENV_SWITCH = "VOXFUSION_NATIVE"
+"""Environment variable: ``0`` keeps every call on the PyTorch operators (read at every call)."""
+
+_P, _I64, _F32, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
+
+_SIGNATURES: dict[str, dict[str, tuple[list, object]]] = {
+    "interpolation": {
+        "vf_interpolate_forward": ([_P, _I64, _P, _P, _P, _P, _I64, _F32, _P, _P, _P], None),
+        "vf_interpolate_backward": ([_P, _I64, _P, _P, _I64, _F32, _P, _P, _P, _P, _P], None),
+    },
+    "band_losses": {
+        "vf_band_losses_forward": ([_P, _P, _P, _P, _P, _P, _P, _P, _I64, _I64, _F32, _F32, _P, _P, _P], _INT),
+        "vf_band_losses_backward": ([_P, _P, _P, _P, _P, _P, _P, _P, _I64, _I64, _F32, _F32, _P, _P, _P, _P], _INT),
+    },
+}
+"""Each source's entry points: argument types (pointers are ``tensor.data_ptr()`` of contiguous CPU tensors) and
+return type; shapes are documented in the C files."""
+
+
+class Kernels:
+    """A loaded library's entry points as attributes without their ``vf_`` prefix (``kernels.interpolate_forward``)."""
+
+    def __init__(self, name: str, lib: ctypes.CDLL, path: Path) -> None:
+        self.name, self.path = name, path
+        for symbol, (argtypes, restype) in _SIGNATURES[name].items():
+            fn = getattr(lib, symbol)
+            fn.argtypes, fn.restype = argtypes, restype
+            setattr(self, symbol.removeprefix("vf_"), fn)
+
+
+_lock = threading.Lock()
+_loaded: dict[str, Kernels | None] = {}
+
+
+def enabled() -> bool:
+    """False when ``VOXFUSION_NATIVE=0``."""
+    return os.environ.get(ENV_SWITCH, "1").strip() != "0"
+
+
+def cache_dir() -> Path:
+    """Where built libraries are kept: ``$VOXFUSION_CACHE/native``, default ``~/.cache/voxfusion/native``."""
+    root = os.environ.get("VOXFUSION_CACHE")
+    return (Path(root) if root else Path.home() / ".cache" / "voxfusion") / "native"
+
+
+def _cpu_signature() -> str:
+    """The CPU's model and instruction-set flags (``-march=native`` builds for them)."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        keep = [ln for ln in lines if ln.startswith(("model name", "flags"))][:2]
+        return "\n".join(keep) or platform.processor()
+    except OSError:
+        return platform.processor() or platform.machine()
+
+
+def _compiler() -> str | None:
+    return os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+
+
+def _build(cc: str, source: Path, target: Path) -> None:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=target.stem + ".", suffix=".tmp.so", dir=target.parent)
+    os.close(fd)
+    try:
+        subprocess.run([cc, *FLAGS, str(source), "-o", tmp, "-lm"], check=True, capture_output=True, text=True,
+                       timeout=120)
+        os.replace(tmp, target)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _kernels(name: str) -> Kernels | None:
+    """The library built from ``<name>.c``, built on first use; None where switched off or it cannot be built."""
+    if not enabled():
+        return None
+    if name in _loaded:
+        return _loaded[name]
+    with _lock:
+        if name in _loaded:
+            return _loaded[name]
+        kernels = None
+        source = SOURCE_DIR / f"{name}.c"
+        cc = _compiler()
+        if cc is None:
+            log.warning("no C compiler found ($CC, cc, gcc, clang): the %s kernel is not built, PyTorch operators "
+                        "run instead (slower on a CPU)", name)
+        else:
+            digest = hashlib.sha256("\n".join([source.read_text(), cc, *FLAGS, _cpu_signature()]).encode())
+            target = cache_dir() / f"{name}-{platform.machine()}-{digest.hexdigest()[:16]}.so"
+            try:
+                if not target.exists():
+                    _build(cc, source, target)
+                kernels = Kernels(name, ctypes.CDLL(str(target)), target)
+            except (OSError, subprocess.SubprocessError, AttributeError) as exc:
+                detail = (getattr(exc, "stderr", None) or str(exc)).strip().splitlines()
+                log.warning("could not build the %s kernel with %s (%s): PyTorch operators run instead (slower on "
+                            "a CPU)", name, cc, detail[-1] if detail else type(exc).__name__)
+        _loaded[name] = kernels
+        return kernels
+
+
+def interpolation_kernels() -> Kernels | None:
+    """``interpolation.c``: ``interpolate_forward`` and ``interpolate_backward``, or None (:func:`_kernels`)."""
+    return _kernels("interpolation")
+
+
+def band_loss_kernels() -> Kernels | None:
+    """``band_losses.c``: ``band_losses_forward`` and ``band_losses_backward``, or None (:func:`_kernels`)."""
+    return _kernels("band_losses")
