@@ -48,7 +48,7 @@ _P, _I64, _F32, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c
 
 _SIGNATURES: dict[str, dict[str, tuple[list, object]]] = {
     "interpolation": {
-        "vf_interpolate_forward": ([_P, _I64, _P, _P, _P, _P, _I64, _F32, _P, _P, _P], None),
+        "vf_interpolate_forward": ([_P, _I64, _P, _P, _I64, _P, _P, _I64, _F32, _P, _P, _P], _INT),
         "vf_interpolate_backward": ([_P, _I64, _P, _P, _I64, _F32, _P, _P, _P, _P, _P], None),
     },
     "band_losses": {

@@ -9,7 +9,7 @@
  *   vertex_ids   [M, 8] int64     each voxel's corner rows in emb, corner c = 4 dx + 2 dy + dz
  *   voxel_coords [M, 3] int64     each voxel's integer coordinates (its low corner is coords * voxel_size)
  *   points       [K, 3] float32   world points, metres
- *   voxel_idx    [K]    int64     each point's voxel, 0 <= voxel_idx < M (the caller guarantees it)
+ *   voxel_idx    [K]    int64     each point's voxel, 0 <= voxel_idx < M (checked by the forward pass)
  *
  * The arithmetic follows field.py operator for operator (local coordinate clamped to [0, 1], weights
  * w[4 dx + 2 dy + dz] = (x_dx y_dy) z_dz, the clamp's gradient zero outside [0, 1]); the embedding sums are
@@ -27,10 +27,13 @@ static void corner_weights(const float l[3], float w[8]) {
 }
 
 /* Features out [K, D] and, for the backward pass, each point's clamped local coordinate loc [K, 3] and which
- * of its axes were inside [0, 1] before clamping (bit a of inside [K]). */
-void vf_interpolate_forward(const float *emb, int64_t dim, const int64_t *vertex_ids, const int64_t *voxel_coords,
-                            const float *points, const int64_t *voxel_idx, int64_t n_points, float voxel_size,
-                            float *out, float *loc, uint8_t *inside) {
+ * of its axes were inside [0, 1] before clamping (bit a of inside [K]). Returns 0, or -1 (and writes nothing)
+ * when a voxel index is outside [0, n_voxels). */
+int vf_interpolate_forward(const float *emb, int64_t dim, const int64_t *vertex_ids, const int64_t *voxel_coords,
+                           int64_t n_voxels, const float *points, const int64_t *voxel_idx, int64_t n_points,
+                           float voxel_size, float *out, float *loc, uint8_t *inside) {
+    for (int64_t k = 0; k < n_points; ++k)
+        if (voxel_idx[k] < 0 || voxel_idx[k] >= n_voxels) return -1;
     for (int64_t k = 0; k < n_points; ++k) {
         const int64_t m = voxel_idx[k];
         float l[3], w[8];
@@ -52,11 +55,12 @@ void vf_interpolate_forward(const float *emb, int64_t dim, const int64_t *vertex
             for (int64_t d = 0; d < dim; ++d) o[d] += wc * row[d];
         }
     }
+    return 0;
 }
 
 /* Given grad_out [K, D] (the gradient with respect to the features): adds the embeddings' gradient into
  * grad_emb [V, D] (when not NULL; points in order, so the sums are deterministic) and writes the points'
- * gradient grad_points [K, 3] (when not NULL). */
+ * gradient grad_points [K, 3] (when not NULL). The indices are the forward pass's, already checked. */
 void vf_interpolate_backward(const float *emb, int64_t dim, const int64_t *vertex_ids, const int64_t *voxel_idx,
                              int64_t n_points, float voxel_size, const float *loc, const uint8_t *inside,
                              const float *grad_out, float *grad_emb, float *grad_points) {

@@ -439,3 +439,18 @@ def test_interpolation_kernel_build_failure_leaves_one_warning_and_the_operators
     built = kernels.path.stat().st_mtime_ns
     monkeypatch.setattr(native, "_loaded", {})  # a new process: loads the cached library, does not build it again
     assert native.interpolation_kernels().path == kernels.path and kernels.path.stat().st_mtime_ns == built
+
+
+def test_an_index_outside_the_map_is_a_clear_error_on_every_path(native_path: str):
+    """A voxel index outside the map (a caller that forgot to mask the points outside it) raises an error naming
+    ``voxel_idx`` from the compiled kernel, never reads past its tables; the operators raise too."""
+    from voxfusion.core.map.field import interpolate_unchecked
+
+    vm, pts, idx, _ = _map_with_points_inside(8, 100, 50, seed=7)
+    for bad in (-1, vm.n_voxels):
+        wrong = idx.clone()
+        wrong[3] = bad
+        with pytest.raises((ValidationError, IndexError, RuntimeError)) as err:
+            interpolate_unchecked(vm, pts, wrong)
+        if native_path == "kernel":
+            assert err.type is ValidationError and "voxel_idx" in str(err.value)
