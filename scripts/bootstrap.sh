@@ -16,7 +16,9 @@ cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3}
 EXTRAS=${VOXFUSION_EXTRAS:-baseline,test,server,iphone,cluster}
-SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libglx0 libgomp1 libx11-6 curl)
+# gcc and libc6-dev build the engine's CPU kernels (core/native/*.c) on first use; without them the engine runs the
+# PyTorch operators those kernels replace (slower on a CPU)
+SYSTEM_PACKAGES=(libusb-1.0-0 libgl1 libegl1 libglx0 libgomp1 libx11-6 curl gcc libc6-dev)
 # The headless browser of the viewer's tests (tests/server/browser.py, scripts/viewer_screenshot.py), Debian's
 # names. Optional: when it cannot be installed, setup goes on with a warning and those tests are skipped.
 BROWSER_PACKAGES=(chromium chromium-driver)
