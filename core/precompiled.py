@@ -49,8 +49,8 @@ import torch
 
 from .errors import VoxFusionError
 
-__all__ = ["PrecompiledFunction", "PrecompiledVariants", "cache_dir", "enabled", "preload", "compile_artifact",
-           "ENV_SWITCH", "ENV_CACHE_DIR"]
+__all__ = ["PrecompiledFunction", "PrecompiledVariants", "cache_root", "cache_dir", "enabled", "preload",
+           "compile_artifact", "ENV_SWITCH", "ENV_CACHE_DIR"]
 
 log = logging.getLogger("voxfusion.precompiled")
 
@@ -72,13 +72,19 @@ def enabled() -> bool:
     return os.environ.get(ENV_SWITCH, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
-def cache_dir() -> Path:
-    """Where artifacts live: ``$VOXFUSION_CACHE_DIR/precompiled``, else under ``$XDG_CACHE_HOME/voxfusion`` or
-    ``~/.cache/voxfusion``."""
+def cache_root() -> Path:
+    """The engine's per-machine cache: ``$VOXFUSION_CACHE_DIR``, else ``$XDG_CACHE_HOME/voxfusion`` or
+    ``~/.cache/voxfusion`` (precompiled artifacts in ``precompiled/``, the C kernels of :mod:`.native` in
+    ``native/``)."""
     root = os.environ.get(ENV_CACHE_DIR)
     if not root:
         root = str(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "voxfusion")
-    return Path(root) / "precompiled"
+    return Path(root)
+
+
+def cache_dir() -> Path:
+    """Where artifacts live: ``precompiled/`` of :func:`cache_root`."""
+    return cache_root() / "precompiled"
 
 
 @functools.cache

@@ -11,10 +11,11 @@ overhead of several microseconds, and a few serial ``index_add_`` passes; a loop
 without them (numbers in the users' docstrings and ``docs/engine-history.md``).
 
 How: each source is built on first use with the system's C compiler (``$CC``, else ``cc``, ``gcc`` or ``clang``;
-about a second) into the cache (``$VOXFUSION_CACHE/native``, default ``~/.cache/voxfusion/native``), one file per
-source, compiler, flags and CPU, written under a temporary name and renamed, so concurrent processes never load a
-half-written library. Where no compiler works, or with ``VOXFUSION_NATIVE=0``, the accessors return None (after one
-log line per source and process) and callers run the PyTorch operators.
+about a second) into ``native/`` of the engine's cache (:func:`~..precompiled.cache_root`: ``$VOXFUSION_CACHE_DIR``,
+default ``~/.cache/voxfusion``), one file per source, compiler, flags and CPU, written under a temporary name and
+renamed, so concurrent processes never load a half-written library. Where no compiler works, or with
+``VOXFUSION_NATIVE=0``, the accessors return None (after one log line per source and process) and callers run the
+PyTorch operators.
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ import tempfile
 import threading
 from pathlib import Path
 
+from ..precompiled import cache_root
+
 log = logging.getLogger("voxfusion.native")
 
 __all__ = ["FLAGS", "ENV_SWITCH", "Kernels", "interpolation_kernels", "band_loss_kernels", "cache_dir", "enabled"]
@@ -42,7 +45,7 @@ FLAGS = ("-O3", "-march=native", "-ffp-contract=off", "-std=c99", "-shared", "-f
 multiply-adds, which PyTorch's CPU kernels do not make either."""
 
 ENV_SWITCH = "VOXFUSION_NATIVE"
-"""Environment variable: ``0`` keeps every call on the PyTorch operators (read at every call)."""
+"""Environment variable: ``0`` keeps every call on the PyTorch operators (read at every call; the tests switch it)."""
 
 _P, _I64, _F32, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
 
@@ -76,14 +79,13 @@ _loaded: dict[str, Kernels | None] = {}
 
 
 def enabled() -> bool:
-    """False when ``VOXFUSION_NATIVE=0``."""
-    return os.environ.get(ENV_SWITCH, "1").strip() != "0"
+    """False when ``VOXFUSION_NATIVE`` is ``0`` (or ``false``, ``no``, ``off``), as ``VOXFUSION_PRECOMPILE``."""
+    return os.environ.get(ENV_SWITCH, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
 def cache_dir() -> Path:
-    """Where built libraries are kept: ``$VOXFUSION_CACHE/native``, default ``~/.cache/voxfusion/native``."""
-    root = os.environ.get("VOXFUSION_CACHE")
-    return (Path(root) if root else Path.home() / ".cache" / "voxfusion") / "native"
+    """Where built libraries are kept: ``native/`` of the engine's cache (:func:`~..precompiled.cache_root`)."""
+    return cache_root() / "native"
 
 
 def _cpu_signature() -> str:

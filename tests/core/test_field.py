@@ -417,7 +417,7 @@ def test_interpolation_kernel_build_failure_leaves_one_warning_and_the_operators
     from voxfusion.core import native
     from voxfusion.core.map.field import interpolate_reference, interpolate_unchecked
 
-    monkeypatch.setenv("VOXFUSION_CACHE", str(tmp_path))
+    monkeypatch.setenv("VOXFUSION_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv(native.ENV_SWITCH, "1")
     monkeypatch.setenv("CC", "false")
     monkeypatch.setattr(native, "_loaded", {})
