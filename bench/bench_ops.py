@@ -34,7 +34,8 @@ first 10 frames with the ``cpu`` sizes; then:
   (each call fuses into its own copy of the same map, made beforehand).
 
 Where the engine computes one thing in two forms, one for a CPU and one with fewer operators for a GPU (the trilinear
-weights, ``core/map/field.py``), the GPU's form is counted (``--cpu-forms``: the CPU's). The band rows count the
+weights, ``core/map/field.py``; the C kernels of ``core/native``, which replace operators on a CPU only), the GPU's
+form is counted (``--cpu-forms``: the CPU's). The band rows count the
 fixed-shape path a GPU runs (``mapping.compact_samples: false``); ``mapping/band
 compact`` is the CPU default, which evaluates only the samples inside the map (one read-back per iteration).
 
@@ -51,6 +52,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 from collections import Counter
 from pathlib import Path
@@ -86,6 +88,8 @@ def use_gpu_forms() -> None:
     if hasattr(field, "_trilinear_weights_outer"):
         field._trilinear_weight_columns = field._trilinear_weights_outer
         field._trilinear_weight_backward = field._trilinear_backward_outer
+    # the CPU's C kernels (core/native, since 2026-11-29) do not run on a GPU: count the operators they replace
+    os.environ["VOXFUSION_NATIVE"] = "0"
 
 
 def count_ops(fn, repeats: int) -> dict[str, float]:
