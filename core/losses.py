@@ -28,7 +28,7 @@ import torch
 
 from . import native
 from .errors import ConfigError, ShapeError
-from .render.volume import BandSamples, RenderConfig, RenderOutput
+from .render.volume import BandSamples, RenderConfig, RenderOutput, first_surface
 
 __all__ = ["LossConfig", "LossTerms", "compute_losses", "band_losses"]
 
@@ -246,19 +246,12 @@ class _BandLosses(torch.autograd.Function):
     def forward(ctx, sdf: torch.Tensor, rgb: torch.Tensor | None, t: torch.Tensor,  # noqa: ANN001, ANN205
                 mask: torch.Tensor, dn: torch.Tensor, depth_gt: torch.Tensor, color_gt: torch.Tensor | None,
                 color_valid: torch.Tensor | None, render: RenderConfig, config: LossConfig):
-        n, s = t.shape
         tr, b = render.truncation_m, render.weight_scale_m
         # composite (render/volume.py), operator for operator
         sdf = torch.where(mask, sdf, torch.zeros_like(sdf))
         s_pos, s_neg = torch.sigmoid(sdf / b), torch.sigmoid(-sdf / b)
         bell = s_pos * s_neg
-        cross = (sdf[:, :-1] > 0) & (sdf[:, 1:] <= 0) & mask[:, :-1] & mask[:, 1:]
-        surface = cross.any(1)
-        if s > 1:
-            t_cross = t.gather(1, cross.to(torch.int8).argmax(1, keepdim=True))
-        else:
-            t_cross = t.new_zeros(n, 1)
-        keep = ~surface[:, None] | (t <= t_cross + tr / dn.clamp(min=1e-12)[:, None])
+        keep = first_surface(sdf, t, mask, dn, tr)[1]
         w = bell * mask * keep
         w_sum = w.sum(1)
         w_norm = w_sum.clamp(min=1e-20)

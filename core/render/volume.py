@@ -54,6 +54,7 @@ __all__ = [
     "render_rays",
     "render_rays_fixed",
     "composite",
+    "first_surface",
     "band_samples",
     "band_jitter",
     "band_sample_count",
@@ -440,6 +441,23 @@ def render_budget(voxel_map: VoxelMap, out: RenderOutput, headroom: float = 1.25
     return RenderBudget(samples=up(samples, 8), queries=up(queries, 4096), planes=planes)
 
 
+def first_surface(sdf: torch.Tensor, t: torch.Tensor, mask: torch.Tensor, dir_norm: torch.Tensor, truncation_m: float
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each ray's first front-facing zero crossing (+ to -, between two samples inside the map) and the samples the
+    compositing keeps: ``(surface [N] bool, keep [N, S] bool)``, ``keep`` False behind the crossing plus the
+    truncation (every sample of a ray without one). ``sdf [N, S]`` (0 outside ``mask``), ``t [N, S]`` ascending,
+    ``dir_norm [N]`` metres per unit ``t``. No gradient, no host synchronisation; :func:`composite` and the mapper's
+    fused losses (:func:`~..losses.band_losses`) share it."""
+    n, s = t.shape
+    cross = (sdf[:, :-1] > 0) & (sdf[:, 1:] <= 0) & mask[:, :-1] & mask[:, 1:]
+    surface = cross.any(1)
+    if s > 1:
+        t_cross = t.gather(1, cross.to(torch.int8).argmax(1, keepdim=True))
+    else:
+        t_cross = t.new_zeros(n, 1)
+    return surface, ~surface[:, None] | (t <= t_cross + truncation_m / dir_norm.clamp(min=1e-12)[:, None])
+
+
 def composite(sdf: torch.Tensor, rgb: torch.Tensor | None, t: torch.Tensor, mask: torch.Tensor,
               dir_norm: torch.Tensor, hit: torch.Tensor, config: RenderConfig) -> RenderOutput:
     """Depth and colour from the field at each ray's samples (paper eq. 1-4), the stage every sampler shares.
@@ -452,19 +470,11 @@ def composite(sdf: torch.Tensor, rgb: torch.Tensor | None, t: torch.Tensor, mask
     Weights ``w = sigmoid(s / b) sigmoid(-s / b)``, zero beyond the first front-facing zero crossing plus
     the truncation. Fixed shapes and no host synchronisation.
     """
-    n, s = t.shape
     sdf = torch.where(mask, sdf, torch.zeros_like(sdf))
     b = config.weight_scale_m
     w = torch.sigmoid(sdf / b) * torch.sigmoid(-sdf / b) * mask
     with torch.no_grad():
-        sd = sdf.detach()
-        cross = (sd[:, :-1] > 0) & (sd[:, 1:] <= 0) & mask[:, :-1] & mask[:, 1:]
-        surface = cross.any(1)
-        if s > 1:
-            t_cross = t.gather(1, cross.to(torch.int8).argmax(1, keepdim=True))
-        else:
-            t_cross = t.new_zeros(n, 1)
-        keep = ~surface[:, None] | (t <= t_cross + config.truncation_m / dir_norm.clamp(min=1e-12)[:, None])
+        surface, keep = first_surface(sdf.detach(), t, mask, dir_norm, config.truncation_m)
     w = w * keep
     w_sum = w.sum(1)
     weights = w / w_sum.clamp(min=1e-20)[:, None]
