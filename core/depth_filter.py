@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import torch
 
+from . import native
 from .errors import ConfigError, ShapeError
 
 __all__ = ["DepthFilterConfig", "depth_support", "depth_outlier_mask"]
@@ -84,6 +85,10 @@ def depth_support(depth_m: torch.Tensor, window_px: int = 5, rel_tol: float = 0.
     Returns:
         ``[H, W]`` uint8 number of supporting neighbours (0 for invalid pixels). Neighbours outside the
         image count as unsupported.
+
+    On a CPU the pairs are counted by a C loop (``core/native/depth_support.c``; the same counts, tested), elsewhere
+    (or without a C compiler) by the operators below: 12 shifted comparisons of a 5 x 5 window, ~2-3 ms at 320 x 240
+    on the 2-core AMD EPYC.
     """
     if depth_m.dim() != 2:
         raise ShapeError("depth_m", tuple(depth_m.shape), "[H, W]")
@@ -96,6 +101,12 @@ def depth_support(depth_m: torch.Tensor, window_px: int = 5, rel_tol: float = 0.
     ld = torch.where(valid, depth_m.float().clamp(min=1e-30).log(), torch.full_like(depth_m, math.nan,
                                                                                   dtype=torch.float32))
     tol = math.log1p(rel_tol)
+    kernels = native.depth_support_kernels() if ld.device.type == "cpu" else None
+    if kernels is not None:  # the same counts from one C loop (core/native/depth_support.c)
+        ld = ld.contiguous()
+        count = torch.empty(h, w, dtype=torch.uint8)
+        kernels.depth_support(ld.data_ptr(), h, w, r, tol, count.data_ptr())
+        return count
     count = torch.zeros(h, w, dtype=torch.uint8, device=depth_m.device)
     for dy in range(0, r + 1):
         for dx in range(-r, r + 1):

@@ -4,7 +4,9 @@ of PyTorch operators that stay the reference (the tests hold each kernel to them
 * ``interpolation.c``: trilinear interpolation of a voxel map's corner embeddings, forward and backward
   (:func:`interpolation_kernels`, used by :mod:`..map.field`);
 * ``band_losses.c``: a mapping iteration's compositing and loss terms, forward and backward
-  (:func:`band_loss_kernels`, used by :func:`..losses.band_losses`).
+  (:func:`band_loss_kernels`, used by :func:`..losses.band_losses`);
+* ``depth_support.c``: the depth filter's neighbourhood support (:func:`depth_support_kernels`, used by
+  :func:`..depth_filter.depth_support`), every frame's first step.
 
 Why: on a CPU, a mapping iteration (~5000 samples) through PyTorch is ~400 small operators, each with a fixed
 overhead of several microseconds, and a few serial ``index_add_`` passes; a loop in C does the same arithmetic
@@ -35,7 +37,8 @@ from ..precompiled import cache_root
 
 log = logging.getLogger("voxfusion.native")
 
-__all__ = ["FLAGS", "ENV_SWITCH", "Kernels", "interpolation_kernels", "band_loss_kernels", "cache_dir", "enabled"]
+__all__ = ["FLAGS", "ENV_SWITCH", "Kernels", "interpolation_kernels", "band_loss_kernels", "depth_support_kernels",
+           "cache_dir", "enabled"]
 
 SOURCE_DIR = Path(__file__).resolve().parent
 """Where the C sources are (installed with the package)."""
@@ -57,6 +60,9 @@ _SIGNATURES: dict[str, dict[str, tuple[list, object]]] = {
     "band_losses": {
         "vf_band_losses_forward": ([_P, _P, _P, _P, _P, _P, _P, _P, _I64, _I64, _F32, _F32, _P, _P, _P], _INT),
         "vf_band_losses_backward": ([_P, _P, _P, _P, _P, _P, _P, _P, _I64, _I64, _F32, _F32, _P, _P, _P, _P], _INT),
+    },
+    "depth_support": {
+        "vf_depth_support": ([_P, _I64, _I64, _I64, _F32, _P], None),
     },
 }
 """Each source's entry points: argument types (pointers are ``tensor.data_ptr()`` of contiguous CPU tensors) and
@@ -153,3 +159,8 @@ def interpolation_kernels() -> Kernels | None:
 def band_loss_kernels() -> Kernels | None:
     """``band_losses.c``: ``band_losses_forward`` and ``band_losses_backward``, or None (:func:`_kernels`)."""
     return _kernels("band_losses")
+
+
+def depth_support_kernels() -> Kernels | None:
+    """``depth_support.c``: ``depth_support``, or None (:func:`_kernels`)."""
+    return _kernels("depth_support")

@@ -70,11 +70,15 @@ def _support_reference(depth: torch.Tensor, window_px: int, rel_tol: float) -> t
 
 @pytest.mark.parametrize("shape", [(1, 1), (2, 7), (3, 3), (17, 13), (48, 64)])
 @pytest.mark.parametrize("window_px", [3, 5, 7])
-def test_depth_support_matches_plain_reference(shape, window_px):
+def test_depth_support_matches_plain_reference(shape, window_px, native_path):
+    """The counts from the C loop and from the shifted operators (``native_path``) against every offset compared with
+    the centre, invalid pixels (zero, NaN, infinite) included."""
     g = torch.Generator().manual_seed(shape[0] * 100 + shape[1] + window_px)
     levels = 1.0 + torch.randint(0, 4, shape, generator=g).float() * 0.5
     depth = levels * (1.0 + 0.04 * (torch.rand(shape, generator=g) - 0.5))  # some agree within 3 %, some not
     depth[torch.rand(shape, generator=g) < 0.15] = 0.0
+    depth[torch.rand(shape, generator=g) < 0.03] = math.nan
+    depth[torch.rand(shape, generator=g) < 0.03] = math.inf
     got = depth_support(depth, window_px, 0.03)
     assert got.dtype == torch.uint8 and got.shape == shape
     torch.testing.assert_close(got.long(), _support_reference(depth, window_px, 0.03), rtol=0, atol=0)
