@@ -179,6 +179,11 @@ def _ptr(x: torch.Tensor | None) -> int:
     return 0 if x is None else x.data_ptr()
 
 
+def _as_bytes(mask: torch.Tensor) -> torch.Tensor:
+    """A boolean mask as the contiguous ``uint8`` array the kernel reads (any mask dtype: nonzero is True)."""
+    return mask.to(torch.bool).contiguous().view(torch.uint8)
+
+
 class _BandLossesKernel(torch.autograd.Function):
     """:class:`_BandLosses` on a CPU as one compiled loop over the rays per direction (``core/native/band_losses.c``,
     loaded by :mod:`.native`): the same arguments, terms and gradients (to float32 rounding: the sums over rays are
@@ -193,9 +198,9 @@ class _BandLossesKernel(torch.autograd.Function):
                 color_valid: torch.Tensor | None, render: RenderConfig, config: LossConfig):
         n, s = t.shape
         inputs = [sdf.detach().contiguous(), None if rgb is None else rgb.detach().contiguous(), t.contiguous(),
-                  mask.contiguous().view(torch.uint8), dn.to(torch.float32).contiguous(), depth_gt.contiguous(),
+                  _as_bytes(mask), dn.to(torch.float32).contiguous(), depth_gt.contiguous(),
                   None if color_gt is None else color_gt.contiguous(),
-                  None if color_valid is None else color_valid.contiguous().view(torch.uint8)]
+                  None if color_valid is None else _as_bytes(color_valid)]
         weights = torch.tensor([config.w_color, config.w_depth, config.w_fs, config.w_sdf], dtype=torch.float64)
         terms = torch.empty(5, dtype=torch.float64)
         counts = torch.empty(4, dtype=torch.float64)
@@ -204,18 +209,18 @@ class _BandLossesKernel(torch.autograd.Function):
             terms.data_ptr(), counts.data_ptr())
         if status != 0:
             raise RuntimeError(f"band_losses.c refused {s} samples per ray")
-        ctx.inputs, ctx.counts, ctx.config, ctx.render = inputs, counts, config, render
+        ctx.inputs, ctx.counts, ctx.weights, ctx.render = inputs, counts, weights, render
         return tuple(terms.to(sdf.dtype).unbind(0))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_total: torch.Tensor, g_color: torch.Tensor, g_depth: torch.Tensor,  # noqa: ANN001, ANN205
                  g_free: torch.Tensor, g_band: torch.Tensor):
-        cfg, render, inputs = ctx.config, ctx.render, ctx.inputs
+        render, inputs = ctx.render, ctx.inputs
         sdf, rgb, t = inputs[0], inputs[1], inputs[2]
-        coef = (torch.stack([g_color, g_depth, g_free, g_band]).to(torch.float64)
-                + g_total.to(torch.float64) * torch.tensor([cfg.w_color, cfg.w_depth, cfg.w_fs, cfg.w_sdf],
-                                                          dtype=torch.float64))
+        # the gradient reaching each term: its own plus the total's times its weight
+        own = torch.stack([g_color, g_depth, g_free, g_band]).to(torch.float64)
+        coef = own + g_total.to(torch.float64) * ctx.weights
         grad_sdf = torch.empty_like(sdf)
         grad_rgb = torch.empty_like(rgb) if rgb is not None and ctx.needs_input_grad[1] else None
         n, s = t.shape
