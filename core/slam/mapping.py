@@ -53,7 +53,8 @@ from ..render.volume import (
 if TYPE_CHECKING:
     from .presets import VoxFusionConfig
 
-__all__ = ["MappingConfig", "Keyframe", "MappingStep", "Mapper", "make_mapper", "publish_keyframe_poses", "band_loss"]
+__all__ = ["MappingConfig", "Keyframe", "MappingStep", "Mapper", "make_mapper", "publish_keyframe_poses", "band_loss",
+           "warm_up_pose_rates"]
 
 log = logging.getLogger("voxfusion.mapping")
 
@@ -108,6 +109,21 @@ class MappingConfig:
     """Jointly refine the window's camera poses (the first keyframe stays fixed). Off for known poses."""
     lr_pose: float = 1e-3
     """Adam learning rate of the pose corrections (6-vectors, metres / radians)."""
+    pose_warmup_steps: int = 10
+    """A frame's pose correction moves at ``lr_pose * k / pose_warmup_steps`` on its k-th Adam step (counted per
+    frame, over the rounds that train it), at ``lr_pose`` from then on; 0: at ``lr_pose`` from the first step.
+    Adam's first steps move every coordinate by about the learning rate whatever the gradient (the first, with
+    its bias correction, by exactly ``lr_pose``), and a round's pose gradient from 256 random rays per frame is
+    mostly noise: a frame the tracker had placed to a fraction of a millimetre was pushed ~1 mm and ~1 mrad per
+    step, and the map was fitted to rays cast from there. A frame that is not a keyframe is trained in one round
+    only (its correction is then dropped, the trajectory keeps the tracked pose), so with 10 it moves at a
+    tenth to a half of the rate; a keyframe reaches full rate in its third round. Measured on the 2-core AMD
+    EPYC, `cpu` sizes, one torch thread per run (0 -> 10; `docs/engine-history.md`, "TUM fr1 desk looked at
+    again"), ATE cm: synthetic room seeds 0 / 1 / 2 0.136 / 0.199 / 0.229 -> 0.130 / 0.186 / 0.222, held-out
+    seeds 3-6 0.839 / 0.165 / 0.161 / 0.159 -> 0.708 / 0.137 / 0.139 / 0.140, fast rotation 0.219 / 0.252 /
+    0.262 -> 0.227 / 0.251 / 0.271, held-out 3-5 0.721 / 0.530 / 0.270 -> 0.576 / 0.330 / 0.276, TUM fr1 desk
+    0.252 / 0.215 / 0.180 -> 0.233 / 0.171 / 0.164, 7-Scenes 0-499 3.94 / 3.60 / 3.86 -> 3.98 / 3.91 / 4.01
+    (worse on every seed, within its seed spread); 5: in between, fast rotation worse."""
     sampler: str = "band"
     """Where a mapping ray's samples go. ``band``: a fixed number per ray around its observed depth
     (:func:`~.render.render_band`: ``free_samples`` strata over the ``free_range_voxels`` voxel edges in
@@ -148,7 +164,7 @@ class MappingConfig:
         for name in ("rays_per_frame", "iters", "keyframe_max_interval", "map_every"):
             if getattr(self, name) < 1:
                 raise ConfigError(name, f"must be >= 1, got {getattr(self, name)}")
-        for name in ("window_keyframes", "first_frame_iters", "final_iters", "alloc_stride"):
+        for name in ("window_keyframes", "first_frame_iters", "final_iters", "alloc_stride", "pose_warmup_steps"):
             if getattr(self, name) < 0:
                 raise ConfigError(name, f"must be >= 0, got {getattr(self, name)}")
         if not 0 < self.min_depth_m < self.max_depth_m:
@@ -293,6 +309,19 @@ class _PoseRays(torch.autograd.Function):
         g_rho = (g_o @ R).squeeze(1)
         g_phi = torch.cross(d_cam, g_d_cam, dim=-1).sum(1)
         return torch.cat([g_rho, g_phi], -1), None, None
+
+
+def warm_up_pose_rates(optimizer: torch.optim.Adam, lr: float, warmup_steps: int) -> None:
+    """Set the learning rate of each of ``optimizer``'s groups (one frame's pose correction each) that has a gradient
+    this step: ``lr * k / warmup_steps`` for the group's k-th step, ``lr`` from ``warmup_steps`` on (``warmup_steps``
+    0: ``lr`` always). The count lives in the group (``"pose_steps"``), beside the Adam state it tempers, so a new
+    optimiser starts both afresh. Host bookkeeping only: nothing is read from the device."""
+    for group in optimizer.param_groups:
+        if all(p.grad is None for p in group["params"]):  # a frame outside this window
+            continue
+        k = group.get("pose_steps", 0) + 1
+        group["pose_steps"] = k
+        group["lr"] = lr * min(1.0, k / warmup_steps) if warmup_steps > 0 else lr
 
 
 def window_rays(window: list[Keyframe], rays_per_frame: int, generator: torch.Generator | None = None,
@@ -442,14 +471,15 @@ class Mapper:
         self.pose_optimizer: torch.optim.Adam | None = None
 
     def _pose_optimizer(self, window: list[Keyframe]) -> torch.optim.Adam | None:
-        """Adam over the pose corrections of the non-fixed frames in ``window`` (state kept per frame)."""
+        """Adam over the pose corrections of the non-fixed frames in ``window``: one parameter group per frame, with
+        that frame's Adam state and its own learning rate (:func:`warm_up_pose_rates`)."""
         if not self.config.optimize_poses:
             return None
         params = [kf.delta for kf in window if not kf.fixed]
         if not params:
             return None
         if self.pose_optimizer is None:
-            self.pose_optimizer = adam(params, lr=self.config.lr_pose)
+            self.pose_optimizer = adam([{"params": [p]} for p in params], lr=self.config.lr_pose)
         known = {id(p) for g in self.pose_optimizer.param_groups for p in g["params"]}
         for p in params:
             if id(p) not in known:
@@ -597,6 +627,7 @@ class Mapper:
         terms.total.backward()
         adam_step(self.optimizer)
         if pose_opt is not None:
+            warm_up_pose_rates(pose_opt, self.config.lr_pose, self.config.pose_warmup_steps)
             adam_step(pose_opt)
             for kf in window:
                 kf.pose_changed = kf.pose_changed or not kf.fixed

@@ -487,3 +487,47 @@ def test_a_mapping_iterations_fast_paths_give_the_plain_operators_gradients(monk
         scale = float(ref.abs().max())
         assert scale > 0
         torch.testing.assert_close(fast, ref, rtol=1e-3, atol=1e-4 * scale)
+
+
+def _three_keyframe_mapper(warmup: int) -> Mapper:
+    """A mapper holding three keyframes (the first fixed) and no optimiser steps taken yet."""
+    cfg = load_preset("cpu-small", TINY + ["mapping.first_frame_iters=2", "mapping.keyframe_max_interval=1",
+                                           "mapping.lr_pose=1e-3", f"mapping.pose_warmup_steps={warmup}"])
+    cap = SyntheticCapture(SyntheticConfig(n_frames=3, width=48, height=36))
+    m = Mapper(cfg.voxel_size_m, cfg.field, cfg.render, cfg.loss, cfg.mapping, "cpu")
+    for f in cap.frames():
+        m.integrate(frame_to_device(f, "cpu"), f.T_world_cam, optimize=False)
+    assert len(m.keyframes) == 3 and m.pose_optimizer is None
+    return m
+
+
+def test_a_frames_pose_steps_warm_up_to_lr_pose_counted_per_frame():
+    """With ``pose_warmup_steps`` W, a frame's k-th pose step runs at ``lr_pose * k / W`` (then ``lr_pose``), counted
+    over the steps that train that frame only; Adam's first step moves every coordinate of a correction by exactly
+    its learning rate (bias correction), so the first move is ``lr_pose / W``, and ``lr_pose`` without warm-up."""
+    for warmup, first_move in ((4, 1e-3 / 4), (0, 1e-3)):
+        m = _three_keyframe_mapper(warmup)
+        kf0, kf1, kf2 = m.keyframes
+        m.step([kf0, kf1])
+        moved = kf1.delta.detach().abs()
+        np.testing.assert_allclose(moved[moved > 0], first_move, rtol=1e-6)
+        assert moved.count_nonzero() >= 5 and not kf2.delta.detach().any()
+        if not warmup:
+            continue
+        rates = []
+        for _ in range(5):
+            m.step([kf0, kf1])
+            (g1,) = [g for g in m.pose_optimizer.param_groups if g["params"][0] is kf1.delta]
+            rates.append(g1["lr"])
+        np.testing.assert_allclose(rates, [0.5e-3, 0.75e-3, 1e-3, 1e-3, 1e-3])
+        m.step([kf0, kf2])  # kf2's first step: its own count, at a quarter of the rate; kf1's untouched
+        (g1,) = [g for g in m.pose_optimizer.param_groups if g["params"][0] is kf1.delta]
+        (g2,) = [g for g in m.pose_optimizer.param_groups if g["params"][0] is kf2.delta]
+        assert (g1["pose_steps"], g2["pose_steps"], g2["lr"]) == (6, 1, 0.25e-3)
+
+
+def test_pose_warmup_steps_is_validated():
+    from voxfusion.core.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="pose_warmup_steps"):
+        load_preset("cpu-small", TINY + ["mapping.pose_warmup_steps=-1"])
