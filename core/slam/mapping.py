@@ -123,7 +123,10 @@ class MappingConfig:
     seeds 3-6 0.839 / 0.165 / 0.161 / 0.159 -> 0.708 / 0.137 / 0.139 / 0.140, fast rotation 0.219 / 0.252 /
     0.262 -> 0.227 / 0.251 / 0.271, held-out 3-5 0.721 / 0.530 / 0.270 -> 0.576 / 0.330 / 0.276, TUM fr1 desk
     0.252 / 0.215 / 0.180 -> 0.233 / 0.171 / 0.164, 7-Scenes 0-499 3.94 / 3.60 / 3.86 -> 3.98 / 3.91 / 4.01
-    (worse on every seed, within its seed spread); 5: in between, fast rotation worse."""
+    (worse on every seed, within its seed spread); 5: in between, fast rotation worse. In the sixteenth targets run
+    (the tracker precompiled, which rounds differently) against the fifteenth: TUM 0.252 / 0.215 / 0.180 -> 0.233 /
+    0.171 / 0.164, 7-Scenes 3.91 / 3.76 / 4.09 -> 3.79 / 3.92 / 3.75, but fast rotation seed 2 0.30 -> 0.51 and
+    held-out synthetic seed 3 0.66 -> 0.96 (README, "Measured results (CPU)")."""
     sampler: str = "band"
     """Where a mapping ray's samples go. ``band``: a fixed number per ray around its observed depth
     (:func:`~.render.render_band`: ``free_samples`` strata over the ``free_range_voxels`` voxel edges in
