@@ -26,7 +26,9 @@ class SessionStatusOut(SessionStatus):
     frames_lost: int = Field(0, ge=0)
     """Tracked frames whose tracking failed (their pose is the motion model's guess; they are not fused)."""
     frames_retried: int = Field(0, ge=0)
-    """Frames after a gap that were tracked again from other start poses (their first start looked wrong)."""
+    """Frames after a gap that were tracked again from other start poses (their first start looked wrong), and the
+    session's second frame where tracking it again from turned starts changed its pose (``tracking.
+    first_motion_max_deg``)."""
     frames_relocalised: int = Field(0, ge=0)
     """Of those, the frames placed from a keyframe's pose (a camera back at a place it mapped)."""
     worker_pid: int | None = None
