@@ -8,7 +8,7 @@
 #     paper's render tracker beside it on seed 0;
 #   * 7-Scenes redkitchen frames 0-499 (baseline once: it is deterministic; voxfusion seeds 0/1/2);
 #   * TUM fr1_desk (9 frames) and fr3 structure_notexture_far (120 frames), seeds 0/1/2.
-#   * held-out seeds (synthetic room seeds 3-6, fast rotation seeds 3-5), both methods: captures the targets'
+#   * held-out seeds (synthetic room seeds 3-6, fast rotation seeds 3-9), both methods: captures the targets'
 #     seeds do not cover.
 #   * with --gap: only the recovery after a gap, the fast-rotation room seeds 0/1/2 with frames 40-54 without depth,
 #     both methods, and ours again without the retry (bench/results/gap_*.json); and relocalisation, the synthetic
@@ -110,7 +110,7 @@ if [ "$HELDOUT" = 1 ]; then
     for s in 3 4 5 6; do
         run "targets_synthetic_100f_seed$s" --synthetic --frames 100 --seed "$s" --method baseline voxfusion
     done
-    for s in 3 4 5; do
+    for s in 3 4 5 6 7 8 9; do
         run "targets_fastrot_100f_seed$s" --synthetic --frames 100 --seed "$s" --yaw-rate-deg-s 180 --method baseline voxfusion
     done
 fi
