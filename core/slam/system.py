@@ -63,14 +63,14 @@ __all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem", "realtime_th
 log = logging.getLogger("voxfusion.slam")
 
 RETRY_MIN_GAIN = 0.5
+"""A retry after a gap (``tracking.retry_cost_factor``) replaces a first result that was not lost only when its cost
+is below this fraction of the first's: the wrong starts it recovers from cost 5-10 times a correct pose."""
 FIRST_MOTION_MIN_GAIN = 0.75
 """The first-motion search (``tracking.first_motion_max_deg``) replaces the first result by one that costs under this
 times its cost. Not :data:`RETRY_MIN_GAIN`: the first result's start (no motion) is no better a guess than a turned
 one, so the lower cost wins once it is beyond the noise between two tracks of one frame (its points are drawn
 afresh: the synthetic room's frame 1 tracked 8 times from its true pose cost within +-5 %, max / min 1.10-1.11).
 A wrong first result there cost ~2x the right one (fast rotation seed 8 at 160x120: 3.6-3.9 against 1.87-2.0)."""
-"""A retry after a gap (``tracking.retry_cost_factor``) replaces a first result that was not lost only when its cost
-is below this fraction of the first's: the wrong starts it recovers from cost 5-10 times a correct pose."""
 
 
 def _turned(axis_angles_deg: list[tuple[float, float, float]]) -> np.ndarray:
@@ -452,8 +452,9 @@ class SlamSystem:
 
     def _needs_first_motion_search(self) -> bool:
         """Whether the frame being tracked is the first after the map's first frame (no motion to extrapolate yet;
-        ``tracking.first_motion_max_deg``)."""
-        return self.config.tracking.first_motion_max_deg > 0 and len(self._good_tail) == 1
+        ``tracking.first_motion_max_deg``; a grid narrower than one step has no turned start to try)."""
+        cfg = self.config.tracking
+        return cfg.first_motion_max_deg >= cfg.first_motion_step_deg and len(self._good_tail) == 1
 
     def _search_first_motion(self, data: FrameData, first: TrackResult) -> TrackResult:
         """Track ``data`` again from the last tracked pose turned by a grid of pans and tilts (``tracking.
@@ -490,13 +491,14 @@ class SlamSystem:
                                    time_ms=first.time_ms + (time.perf_counter() - t0) * 1e3)
 
     def _retry_turns(self) -> np.ndarray:
-        """``[T, 3, 3]`` rotations about the camera's own centre to try after a gap, nearest first: pan (about the
-        camera's y axis; positive turns the optical axis towards +x) by 0, +-step, ... +-max degrees, then tilt
-        (x axis) by +-step."""
+        """The ``[T, 3, 3]`` rotations of :meth:`_turn_poses`."""
         return self._turn_poses()[:, :3, :3]
 
     def _turn_poses(self) -> np.ndarray:
-        """:meth:`_retry_turns` as ``[T, 4, 4]`` poses (no translation), to right-multiply a camera pose with."""
+        """``[T, 4, 4]`` rotations about the camera's own centre to try after a gap (no translation; to right-multiply
+        a camera pose with), nearest first: pan (about the camera's y axis; positive turns the optical axis towards
+        +x) by 0, +-step, ... +-max degrees (``tracking.retry_step_deg``, ``retry_max_deg``), then tilt (x axis) by
+        +-step."""
         cfg = self.config.tracking
         step = cfg.retry_step_deg
         n = int(np.floor(cfg.retry_max_deg / step + 1e-9))

@@ -251,21 +251,23 @@ class TrackingConfig:
     (``T_world_cam_device``: the device measured the motion over the gap). 0 turns it off."""
     first_motion_step_deg: float = 4.0
     first_motion_max_deg: float = 12.0
-    """The first frame tracked after the map's first frame has no motion to extrapolate: it starts at that frame's
-    pose, however far the camera turned in between, and a fast turn there can settle in a wrong minimum that every
-    later frame inherits (the synthetic room swinging at up to 180 deg/s, 6.3-6.6 deg between its first two frames:
+    """The first frame tracked after the map's first frame has no motion to extrapolate: it starts at that frame's pose,
+    however far the camera turned in between, and a fast turn there can settle in a wrong minimum that every later
+    frame inherits (the synthetic room swinging at up to 180 deg/s, 6.3-6.6 deg between its first two frames:
     held-out seeds 6 and 8 put their second frame 24 and 15 cm off, ATE 2.4 and 4.6 cm). So that frame is also
     tracked from the first frame's pose turned by a grid of pans and tilts, every ``first_motion_step_deg`` up to
     ``first_motion_max_deg`` either way, from the two turned starts where its depth fits the map best
     (:meth:`Tracker.pose_costs`), and a result replaces the first when it is not lost and costs under 0.75 times the
     first's (:data:`.slam.system.FIRST_MOTION_MIN_GAIN`), the lowest winning. Never with a device prior;
-    ``first_motion_max_deg`` 0 turns it off. The starts are ranked at 256 points (the 49 of the default
-    grid in one batched field query); the search costs ~0.13 s once per session at 320x240, ~0.24 s at 640x480 (two
-    tracks and the ranking; 2-core AMD EPYC, one thread). Fast rotation held-out seeds 6 / 8 (320x240, 100 frames):
-    ATE 2.45 / 4.61 -> 0.25 / 0.22 cm (the second frame's cost 4.08 / 3.86 -> 1.68 / 1.71); on every other capture
-    measured (synthetic room seeds 0-6, fast rotation seeds 0-5, 7, 9, TUM fr1 desk, 7-Scenes seeds 0-2) the first
-    result stood and every pose is the one tracked without the search (:meth:`.SlamSystem._search_first_motion` puts
-    the tracker's random stream back)."""
+    ``first_motion_max_deg`` 0 (or below one step) turns it off. The starts are ranked at 256 points (the 49 of the
+    default grid in one batched field query); the search costs ~0.13 s once per session at 320x240, ~0.24 s at
+    640x480 (two tracks and the ranking; 2-core AMD EPYC, one thread). Fast rotation held-out seeds 6 / 8 (320x240,
+    100 frames): ATE 2.45 / 4.61 -> 0.25 / 0.22 cm (the second frame's cost 4.08 / 3.86 -> 1.68 / 1.71); on every
+    other capture measured with the tracker uncompiled (synthetic room seeds 0-6, fast rotation seeds 0-5, 7, 9, TUM
+    fr1 desk, 7-Scenes seeds 0-2) the first result stood and every pose is the one tracked without the search
+    (:meth:`.SlamSystem._search_first_motion` puts the tracker's random stream back); with the precompiled tracker,
+    which rounds differently, it also replaced fast rotation seed 4's (0.59 -> 0.38 cm, ``bash
+    bench/engine_targets.sh --heldout``)."""
     retry_window: int = 10
     """Tracked frames whose median cost is the reference of ``retry_cost_factor`` (no retry before this many)."""
     retry_gap: float = 2.5
