@@ -16,10 +16,13 @@ ENV PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1
 
 # Ubuntu's packages are not pinned: the archive keeps only the current version of each, so a pin breaks the
 # build at the next security update; the base image's tag fixes the release (22.04) they come from.
+# gcc and libc6-dev build the engine's C kernels on first use (core/native/: a CPU session's interpolation,
+# compositing and depth filter, ~1 s per kernel into ~/.cache/voxfusion/native); without them a session on the CPU
+# (`--device cpu`, or a container started without a GPU) runs the slower PyTorch operators instead.
 # hadolint ignore=DL3008
 RUN apt-get update \
  && apt-get install -y --no-install-recommends python3.11 python3.11-venv \
-        libusb-1.0-0 libgl1 libegl1 libglx0 libgomp1 libx11-6 \
+        libusb-1.0-0 libgl1 libegl1 libglx0 libgomp1 libx11-6 gcc libc6-dev \
  && rm -rf /var/lib/apt/lists/* \
  && useradd --system --uid 10001 --user-group --create-home --home-dir /home/voxfusion voxfusion \
  && mkdir -p /data \

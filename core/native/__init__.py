@@ -15,7 +15,9 @@ without them (numbers in the users' docstrings and ``docs/engine-history.md``).
 How: each source is built on first use with the system's C compiler (``$CC``, else ``cc``, ``gcc`` or ``clang``;
 about a second) into ``native/`` of the engine's cache (:func:`~..precompiled.cache_root`: ``$VOXFUSION_CACHE_DIR``,
 default ``~/.cache/voxfusion``), one file per source, compiler, flags and CPU, written under a temporary name and
-renamed, so concurrent processes never load a half-written library. Where no compiler works, or with
+renamed, so concurrent processes never load a half-written library. Each build also deletes that kernel's older
+libraries beyond the newest :data:`KEEP_LIBRARIES` (every change to a source, the compiler or the CPU makes a new
+one) and build files a crashed build left behind (:func:`prune`). Where no compiler works, or with
 ``VOXFUSION_NATIVE=0``, the accessors return None (after one log line per source and process) and callers run the
 PyTorch operators.
 """
@@ -31,14 +33,15 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 from ..precompiled import cache_root
 
 log = logging.getLogger("voxfusion.native")
 
-__all__ = ["FLAGS", "ENV_SWITCH", "Kernels", "interpolation_kernels", "band_loss_kernels", "depth_support_kernels",
-           "cache_dir", "enabled"]
+__all__ = ["FLAGS", "ENV_SWITCH", "KEEP_LIBRARIES", "Kernels", "interpolation_kernels", "band_loss_kernels",
+           "depth_support_kernels", "cache_dir", "enabled", "prune"]
 
 SOURCE_DIR = Path(__file__).resolve().parent
 """Where the C sources are (installed with the package)."""
@@ -49,6 +52,14 @@ multiply-adds, which PyTorch's CPU kernels do not make either."""
 
 ENV_SWITCH = "VOXFUSION_NATIVE"
 """Environment variable: ``0`` keeps every call on the PyTorch operators (read at every call; the tests switch it)."""
+
+KEEP_LIBRARIES = 4
+"""Libraries of one kernel (per machine architecture) a cache keeps, the newest builds; older ones are deleted when
+a new one is built (:func:`prune`). A process that has one loaded keeps using it (the file's data stays until it
+closes it); a checkout that needs a deleted one rebuilds it in about a second."""
+
+_STALE_BUILD_S = 600.0
+"""A temporary build file older than this belongs to a build that died (a build takes about a second)."""
 
 _P, _I64, _F32, _INT = ctypes.c_void_p, ctypes.c_int64, ctypes.c_float, ctypes.c_int
 
@@ -121,6 +132,33 @@ def _build(cc: str, source: Path, target: Path) -> None:
             os.unlink(tmp)
 
 
+def prune(directory: Path, name: str, keep: int = KEEP_LIBRARIES) -> None:
+    """Delete ``name``'s libraries in ``directory`` (``<name>-<machine>-<digest>.so``, this machine's architecture)
+    beyond the ``keep`` newest by modification time, and its temporary build files older than
+    :data:`_STALE_BUILD_S` (a build running now keeps its own). Other kernels' files and anything else are left
+    alone; a file that cannot be deleted (or vanished meanwhile) is skipped."""
+    prefix = f"{name}-{platform.machine()}-"
+    built, stale = [], []
+    now = time.time()
+    for path in directory.glob(f"{prefix}*.so"):
+        try:
+            mtime = path.stat().st_mtime
+        except OSError:
+            continue
+        if path.name.endswith(".tmp.so"):
+            if now - mtime > _STALE_BUILD_S:
+                stale.append(path)
+        else:
+            built.append((mtime, path))
+    for _, path in sorted(built, reverse=True)[keep:]:
+        stale.append(path)
+    for path in stale:
+        try:
+            path.unlink()
+        except OSError:
+            pass
+
+
 def _kernels(name: str) -> Kernels | None:
     """The library built from ``<name>.c``, built on first use; None where switched off or it cannot be built."""
     if not enabled():
@@ -140,9 +178,12 @@ def _kernels(name: str) -> Kernels | None:
             digest = hashlib.sha256("\n".join([source.read_text(), cc, *FLAGS, _cpu_signature()]).encode())
             target = cache_dir() / f"{name}-{platform.machine()}-{digest.hexdigest()[:16]}.so"
             try:
-                if not target.exists():
+                built = not target.exists()
+                if built:
                     _build(cc, source, target)
                 kernels = Kernels(name, ctypes.CDLL(str(target)), target)
+                if built:  # once loaded, so that no other process's prune can take it away first
+                    prune(target.parent, name)
             except (OSError, subprocess.SubprocessError, AttributeError) as exc:
                 detail = (getattr(exc, "stderr", None) or str(exc)).strip().splitlines()
                 log.warning("could not build the %s kernel with %s (%s): PyTorch operators run instead (slower on "

@@ -454,3 +454,65 @@ def test_an_index_outside_the_map_is_a_clear_error_on_every_path(native_path: st
             interpolate_unchecked(vm, pts, wrong)
         if native_path == "kernel":
             assert err.type is ValidationError and "voxel_idx" in str(err.value)
+
+
+def test_a_new_kernel_build_deletes_that_kernels_oldest_libraries(tmp_path):
+    """Every change to a C source (or the compiler, or the CPU) builds a new library under a new name, so a build
+    keeps only that kernel's newest ``KEEP_LIBRARIES`` and removes build files a crashed build left; other kernels'
+    libraries, a build running now and unrelated files stay."""
+    import os
+    import platform
+    import time
+
+    from voxfusion.core import native
+
+    arch = platform.machine()
+    now = time.time()
+
+    def make(name: str, age_s: float) -> None:
+        path = tmp_path / name
+        path.write_bytes(b"\0")
+        os.utime(path, (now - age_s, now - age_s))
+
+    for i in range(6):  # interpolation-...-d0 is the newest
+        make(f"interpolation-{arch}-d{i}.so", 100.0 * (i + 1))
+    make(f"interpolation-{arch}-d0.abc.tmp.so", 3600.0)  # a build that died an hour ago
+    make(f"interpolation-{arch}-d9.def.tmp.so", 1.0)  # a build running now
+    make(f"band_losses-{arch}-old.so", 1e6)  # another kernel: not this prune's business
+    make("notes.txt", 1e6)
+    native.prune(tmp_path, "interpolation", keep=2)
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == sorted([f"band_losses-{arch}-old.so", f"interpolation-{arch}-d0.so", f"interpolation-{arch}-d1.so",
+                           f"interpolation-{arch}-d9.def.tmp.so", "notes.txt"])
+    native.prune(tmp_path / "absent", "interpolation")  # no cache folder yet: nothing to do, no error
+
+
+def test_building_a_kernel_prunes_its_older_builds_and_loads_the_new_one(monkeypatch, tmp_path):
+    """The build path itself: with ``KEEP_LIBRARIES`` older libraries of the interpolation kernel in the cache, a
+    fresh build leaves the new library and ``KEEP_LIBRARIES - 1`` of the old ones, and the kernel it returns works."""
+    import os
+    import platform
+
+    from voxfusion.core import native
+
+    if native._compiler() is None:
+        pytest.skip("no C compiler: the interpolation kernel cannot be built here")
+    monkeypatch.setenv("VOXFUSION_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv(native.ENV_SWITCH, "1")
+    monkeypatch.setattr(native, "_loaded", {})
+    folder = tmp_path / "native"
+    folder.mkdir()
+    for i in range(native.KEEP_LIBRARIES):
+        old = folder / f"interpolation-{platform.machine()}-old{i}.so"
+        old.write_bytes(b"\0")
+        os.utime(old, (1000 + i, 1000 + i))
+    kernels = native.interpolation_kernels()
+    assert kernels is not None and kernels.path.exists()
+    left = sorted(p.name for p in folder.glob("interpolation-*.so"))
+    expected = [f"interpolation-{platform.machine()}-old{i}.so" for i in range(1, native.KEEP_LIBRARIES)]
+    assert left == sorted([kernels.path.name, *expected])
+    vm, pts, idx, _ = _map_with_points_inside(8, 100, 200, seed=6)
+    from voxfusion.core.map.field import interpolate_reference, interpolate_unchecked
+
+    torch.testing.assert_close(interpolate_unchecked(vm, pts, idx), interpolate_reference(vm, pts, idx),
+                               rtol=1e-5, atol=1e-6)
