@@ -494,6 +494,7 @@ def test_building_a_kernel_prunes_its_older_builds_and_loads_the_new_one(monkeyp
     import platform
 
     from voxfusion.core import native
+    from voxfusion.core.map.field import interpolate_reference, interpolate_unchecked
 
     if native._compiler() is None:
         pytest.skip("no C compiler: the interpolation kernel cannot be built here")
@@ -512,7 +513,5 @@ def test_building_a_kernel_prunes_its_older_builds_and_loads_the_new_one(monkeyp
     expected = [f"interpolation-{platform.machine()}-old{i}.so" for i in range(1, native.KEEP_LIBRARIES)]
     assert left == sorted([kernels.path.name, *expected])
     vm, pts, idx, _ = _map_with_points_inside(8, 100, 200, seed=6)
-    from voxfusion.core.map.field import interpolate_reference, interpolate_unchecked
-
     torch.testing.assert_close(interpolate_unchecked(vm, pts, idx), interpolate_reference(vm, pts, idx),
                                rtol=1e-5, atol=1e-6)
