@@ -54,9 +54,17 @@ from .tracking_sdf import (
     map_costs,
     sample_points,
     solve_pose,
+    with_older_frames,
 )
 
-__all__ = ["TrackingConfig", "TrackResult", "Tracker", "device_prior_applies", "predict_pose", "masked_median"]
+FRAME_REFS_MIN_WEIGHT = 0.25
+"""The older frame-to-frame references (``sdf_frame_refs``) are dropped once their weight would fall below this
+(after ``4 sdf_frame_refs_fade`` accepted frames, ~2 s at 30 Hz): by then the map has taken over, and three cost
+5-10 % of a CPU frame at 320x240 for as long as they are kept (``bench/fps_pair.py``, 2026-12-07); the CUDA graphs are
+captured once more when they go."""
+
+__all__ = ["TrackingConfig", "FRAME_REFS_MIN_WEIGHT", "TrackResult", "Tracker", "device_prior_applies", "predict_pose",
+           "masked_median"]
 
 
 @dataclass(frozen=True)
@@ -166,6 +174,22 @@ class TrackingConfig:
     to frame alone, in effect) TUM 0.34."""
     sdf_frame_max_m: float = 0.05
     """``sdf`` method: point pairs of the frame-to-frame term further apart than this (metres) are ignored."""
+    sdf_frame_refs: int = 3
+    """``sdf`` method: older accepted frames (before the previous one) that the point-to-plane term also compares
+    with, each at its tracked pose (0: the previous frame only). Their weight relative to the previous frame's is
+    ``min(1, sdf_frame_refs_fade / n)`` after ``n`` accepted frames: while the map has been fitted to a handful of
+    noisy frames its SDF is no better an anchor than a frame's depth, and references whose noise and pose errors
+    are independent average it out; as the map integrates more frames it takes over. One projective association
+    per reference and field evaluation, no field query. Measured (2026-12-07, ATE cm seeds 0/1/2, 2-core AMD EPYC,
+    one thread, tracker uncompiled; 0 -> 3): TUM fr1 desk 0.233/0.175/0.168 -> 0.167/0.153/0.124 (TSDF baseline
+    0.173), 7-Scenes 0-499 4.06/3.86/3.78 -> 3.90/3.84/3.77, synthetic room 0.136/0.182/0.213 ->
+    0.115/0.210/0.195, fast rotation 0.375/0.285/0.254 -> 0.208/0.224/0.221. Three references at full weight
+    throughout cost 7-Scenes 17-23 %, one reference at four times the weight drifted to 12 cm there
+    (docs/engine-history.md)."""
+    sdf_frame_refs_fade: int = 16
+    """``sdf`` method: accepted frames over which the older references keep the previous frame's weight
+    (``sdf_frame_refs``; half a second at 30 Hz); after them it falls as 1 / frames, and below
+    :data:`FRAME_REFS_MIN_WEIGHT` they are dropped."""
     sdf_w_photo: float = 0.1
     """``sdf`` method: weight of a photometric frame-to-frame residual (the previous accepted frame's smoothed
     gray image at the point's projection against the point's own gray level, in [0, 1]) relative to the SDF
@@ -334,7 +358,7 @@ class TrackingConfig:
             if not getattr(self, name) >= 0:
                 raise ConfigError(name, f"must be >= 0 (metres / radians), got {getattr(self, name)}")
         for name in ("sdf_w_color", "sdf_w_frame", "sdf_w_photo", "sdf_w_photo_blur", "sdf_photo_blur_px",
-                     "refine_iters", "cpu_threads"):
+                     "refine_iters", "cpu_threads", "sdf_frame_refs", "sdf_frame_refs_fade"):
             if getattr(self, name) < 0:
                 raise ConfigError(name, f"must be >= 0, got {getattr(self, name)}")
         if self.sdf_points >> (2 * (self.sdf_levels - 1)) < 16:
@@ -403,6 +427,8 @@ class Tracker:
         self.decoder: SDFDecoder | None = None
         self._recent_losses: deque[float] = deque(maxlen=20)
         self._reference: DepthReference | None = None
+        self._accepted = 0
+        """Frames remembered so far (:meth:`remember`): how far the older references' weight has faded."""
         self._images: tuple[FrameData, GrayImages] | None = None
         """The last frame whose gray images were made, and those images (:meth:`_gray_images`)."""
         self._graphs: SolverGraphs | None = None
@@ -421,20 +447,27 @@ class Tracker:
         """Keep ``frame``, placed at ``T_world_cam [4, 4]``, as the reference of the next frame's frame-to-frame
         terms (``sdf_w_frame``, and ``sdf_w_photo`` with its smoothed gray image; nothing is kept without
         them). The caller passes every frame it accepts (tracked and not lost, or the first)."""
-        if self.config.method == "sdf" and (self.config.sdf_w_frame > 0 or self._photo_weight() > 0):
-            self._reference = depth_reference(frame, T_world_cam, images=self._gray_images(frame))
+        cfg = self.config
+        if cfg.method == "sdf" and (cfg.sdf_w_frame > 0 or self._photo_weight() > 0):
+            reference = depth_reference(frame, T_world_cam, images=self._gray_images(frame))
+            self._accepted += 1
+            weight = min(1.0, cfg.sdf_frame_refs_fade / self._accepted)
+            if cfg.sdf_frame_refs > 0 and cfg.sdf_w_frame > 0 and weight >= FRAME_REFS_MIN_WEIGHT:
+                reference = with_older_frames(reference, self._reference, cfg.sdf_frame_refs, weight)
+            self._reference = reference
 
     @contextmanager
     def referenced_to(self, frame: FrameData, T_world_cam: np.ndarray) -> Iterator[None]:
         """Within the block the frame-to-frame terms compare with ``frame`` at ``T_world_cam [4, 4]`` instead of the
         last remembered frame, which is kept again after it: relocalisation tracks a frame from a keyframe's pose
         against that keyframe, near it, rather than against the last tracked frame, which may be far away."""
-        saved = self._reference
+        saved, accepted = self._reference, self._accepted
+        self._reference = None  # the keyframe alone: the older frames were seen from far away
         self.remember(frame, T_world_cam)
         try:
             yield
         finally:
-            self._reference = saved
+            self._reference, self._accepted = saved, accepted
 
     def _photo_weight(self) -> float:
         """The photometric frame-to-frame term's weight: ``sdf_w_photo`` where the tracker has colour, else 0."""

@@ -88,7 +88,8 @@ def _reference_signature(ref: DepthReference | None) -> tuple | None:
     return (ref.baseline_px, *(_signature(getattr(ref, f)) for f in _REFERENCE_INPUTS), _signature(ref.offsets))
 
 
-_REFERENCE_INPUTS = ("depth_padded", "K", "T_ref_world", "gray", "gray_blurred")
+_REFERENCE_INPUTS = ("depth_padded", "K", "T_ref_world", "gray", "gray_blurred", "older_depth", "T_older_world",
+                     "older_weights")
 """The :class:`DepthReference` tensors a frame copies into the static reference (``offsets`` depends only on the
 image width and the baseline, which the capture's key holds)."""
 

@@ -63,8 +63,8 @@ from ..precompiled import PrecompiledFunction, PrecompiledVariants
 log = logging.getLogger("voxfusion.tracking")
 
 __all__ = ["SdfSolverConfig", "SdfPoints", "SdfSolution", "DepthReference", "GrayImages", "depth_reference",
-           "frame_residuals", "photometric_residuals", "gray_images", "smoothed_gray", "gaussian_blur",
-           "separable_filter", "sample_points", "solve_pose", "linearize",
+           "with_older_frames", "frame_residuals", "frame_weights", "photometric_residuals", "gray_images",
+           "smoothed_gray", "gaussian_blur", "separable_filter", "sample_points", "solve_pose", "linearize",
            "linearize_terms", "linearize_signature", "pose_terms", "PoseTerms", "map_costs", "solve_spd",
            "solve_spd_elimination"]
 
@@ -188,6 +188,15 @@ class DepthReference:
     gray_blurred: torch.Tensor | None = None
     """``[H, W]`` float32: ``gray`` blurred further by a Gaussian (:func:`gaussian_blur`), for the solver's
     blurred photometric stage (``SdfSolverConfig.w_photo_blurred``); None without that stage."""
+    older_depth: torch.Tensor | None = None
+    """``[R, H + 2 b, W + 2 b]`` float32: the padded depth of the R accepted frames before this one, newest first, for
+    further point-to-plane references (:func:`with_older_frames`; slots not filled yet all zero); None: this frame
+    is the only reference."""
+    T_older_world: torch.Tensor | None = None
+    """``[R, 4, 4]`` float64: the inverses of those frames' tracked poses (identity in empty slots)."""
+    older_weights: torch.Tensor | None = None
+    """``[R]`` float64: each older reference's weight relative to this frame's (0 in empty slots). A tensor, so that a
+    weight that changes from frame to frame changes neither a compiled graph nor a recorded one."""
 
     def blurred(self) -> DepthReference:
         """This reference with the blurred image as its gray image (what the blurred stage aligns to)."""
@@ -217,6 +226,33 @@ def depth_reference(frame: FrameData, T_world_cam: np.ndarray, baseline_px: int 
     offsets = torch.tensor([0, b, -b, b * wp, -b * wp], dtype=torch.int64, device=padded.device)
     gray, gray_blurred = (images.gray, images.blurred) if images is not None else (None, None)
     return DepthReference(padded, frame.K.to(torch.float32), T_ref_world, b, offsets, gray, gray_blurred)
+
+
+def with_older_frames(ref: DepthReference, previous: DepthReference | None, count: int, weight: float
+                      ) -> DepthReference:
+    """``ref`` (the newest accepted frame) with up to ``count`` older frames as further point-to-plane references:
+    ``previous`` (the reference this one replaces) first, then ``previous``'s own older frames, the oldest dropped,
+    each at ``weight`` relative to ``ref``'s. Shapes are fixed from the first call on: slots not filled yet hold
+    zero depth (no point associates there) and weight 0, so a recorded CUDA graph or a compiled evaluation made for
+    one frame serves the next. ``previous`` of another image size (or None) starts the stack afresh.
+
+    Why: the frame-to-frame terms' noise and pose errors are independent from reference to reference, so several
+    average where one heavier reference drifts (``docs/engine-history.md``, 2026-12-07)."""
+    r, hp, wp = count, *ref.depth_padded.shape
+    dev = ref.depth_padded.device
+    depth = torch.zeros((r, hp, wp), dtype=torch.float32, device=dev)
+    T = torch.eye(4, dtype=torch.float64, device=dev).repeat(r, 1, 1)
+    filled = torch.zeros(r, dtype=torch.bool, device=dev)
+    if previous is not None and r > 0 and tuple(previous.depth_padded.shape) == (hp, wp):
+        depth[0], T[0], filled[0] = previous.depth_padded, previous.T_ref_world, True
+        older = previous.older_depth
+        if r > 1 and older is not None and previous.older_weights is not None:
+            m = min(r - 1, older.shape[0])
+            depth[1:m + 1], T[1:m + 1] = older[:m], previous.T_older_world[:m]
+            filled[1:m + 1] = previous.older_weights[:m] > 0
+    weights = torch.where(filled, torch.full((r,), float(weight), dtype=torch.float64, device=dev),
+                          torch.zeros(r, dtype=torch.float64, device=dev))
+    return replace(ref, older_depth=depth, T_older_world=T, older_weights=weights)
 
 
 @dataclass(frozen=True)
@@ -327,17 +363,56 @@ def frame_residuals(ref: DepthReference, p_cam: torch.Tensor, T: torch.Tensor, m
 
     Returns ``(r [N], g_world [N, 3], ok [N])``: ``r = n . (x_ref - v)`` in metres, its gradient with respect
     to the world point (``R_ref^T n``), and the associated pairs (in the image, a normal there, the pair
-    closer than ``max_dist_m``). Fixed shapes, no host synchronisation."""
+    closer than ``max_dist_m``). Fixed shapes, no host synchronisation. With ``ref``'s older frames
+    (:func:`with_older_frames`, R of them) the same against each of them follows: ``[(1 + R) N]`` residuals and
+    masks, ``[(1 + R) N, 3]`` gradients, ``ref`` first, then the older frames newest first (weights:
+    :func:`frame_weights`)."""
     x, u, v = _project_into(ref, p_cam, T)
+    r, n, ok = _point_to_plane(ref, ref.depth_padded.reshape(-1), x, u, v, x.new_zeros((), dtype=torch.int64),
+                               max_dist_m, max_step)
+    g_world = n @ ref.T_ref_world[:3, :3].to(n.dtype)
+    if ref.older_depth is None or ref.T_older_world is None:
+        return r, g_world, ok
+    n_pts, n_older = p_cam.shape[0], ref.older_depth.shape[0]
+    A = (ref.T_older_world @ T).to(p_cam.dtype)  # [R, 4, 4]
+    xo = p_cam @ A[:, :3, :3].mT + A[:, None, :3, 3]  # [R, N, 3]
+    zo = xo[..., 2].clamp(min=1e-6)
+    uo, vo = xo[..., 0] / zo * ref.K[0, 0] + ref.K[0, 2], xo[..., 1] / zo * ref.K[1, 1] + ref.K[1, 2]
+    plane = ref.depth_padded.numel()
+    base = (torch.arange(n_older, device=p_cam.device, dtype=torch.int64) * plane).repeat_interleave(n_pts)
+    ro, no, oko = _point_to_plane(ref, ref.older_depth.reshape(-1), xo.reshape(-1, 3), uo.reshape(-1),
+                                  vo.reshape(-1), base, max_dist_m, max_step)
+    go = (no.reshape(n_older, n_pts, 3) @ ref.T_older_world[:, :3, :3].to(no.dtype)).reshape(-1, 3)
+    return torch.cat([r, ro]), torch.cat([g_world, go]), torch.cat([ok, oko])
+
+
+def frame_weights(ref: DepthReference, n_points: int) -> torch.Tensor | None:
+    """Per residual of :func:`frame_residuals` against ``ref`` with its older frames: ``[(1 + R) N]`` float64, 1 for
+    ``ref``'s own, then each older frame's weight ``N`` times; None when ``ref`` has no older frames (every residual
+    at weight 1)."""
+    if ref.older_weights is None:
+        return None
+    ones = ref.older_weights.new_ones(1)
+    return torch.cat([ones, ref.older_weights]).repeat_interleave(n_points)
+
+
+def _point_to_plane(ref: DepthReference, depth_flat: torch.Tensor, x: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
+                    base: torch.Tensor, max_dist_m: float, max_step: float
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The association and residual of :func:`frame_residuals` for points ``x [M, 3]`` already in a reference
+    camera's frame (metres) with their pixel coordinates ``u, v [M]``, against padded depth images of ``ref``'s
+    size and intrinsics flattened into ``depth_flat``, each point's image starting at ``base`` (``[M]`` or 0-dim,
+    flat offsets). Returns ``(r [M], n [M, 3], ok [M])``: the residual (metres), the reference's normal in its own
+    camera frame, and the associated pairs."""
     h, w, k = ref.height, ref.width, ref.baseline_px
     fx, fy, cx, cy = ref.K[0, 0], ref.K[1, 1], ref.K[0, 2], ref.K[1, 2]
     u, v = torch.round(u), torch.round(v)
     inb = (x[:, 2] > 1e-3) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
     u, v = u.clamp(0, w - 1), v.clamp(0, h - 1)
     wp = w + 2 * k
-    centre = ((v + k) * wp + (u + k)).to(torch.int64)
+    centre = ((v + k) * wp + (u + k)).to(torch.int64) + base
     taps = (centre[:, None] + ref.offsets).reshape(-1)
-    z0, zr, zl, zd, zu = ref.depth_padded.reshape(-1).index_select(0, taps).reshape(centre.shape[0], -1).unbind(1)
+    z0, zr, zl, zd, zu = depth_flat.index_select(0, taps).reshape(centre.shape[0], -1).unbind(1)
     # the reference vertex at (u, v) and the central differences to its neighbours, back-projected:
     # X(u, v, d) = ((u - cx) d / fx, (v - cy) d / fy, d)
     a, c = (u - cx) / fx, (v - cy) / fy
@@ -354,8 +429,7 @@ def frame_residuals(ref: DepthReference, p_cam: torch.Tensor, T: torch.Tensor, m
     diff = x - v0
     r = (n * diff).sum(-1)
     ok = inb & smooth & (diff.norm(dim=-1) < max_dist_m)
-    g_world = n @ ref.T_ref_world[:3, :3].to(n.dtype)
-    return r, g_world, ok
+    return r, n, ok
 
 
 def sample_points(frame: FrameData, n: int, generator: torch.Generator | None = None,
@@ -517,26 +591,35 @@ def linearize_terms(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, T: to
     r, ok = terms.r, terms.ok
     # residual blocks (value, world gradient, Huber scale, cost cap, valid), all in metres: the SDF, then the
     # optional photometric and frame-to-frame terms, weighted; stacked so one pass builds H and b
-    blocks: list[tuple[torch.Tensor, torch.Tensor, float, float, torch.Tensor]] = [
+    blocks: list[tuple[torch.Tensor, torch.Tensor, float | torch.Tensor, float | torch.Tensor, torch.Tensor]] = [
         (r, terms.grads, cfg.huber_m, cfg.max_residual_m, ok)]
     if terms.gray_pred is not None and terms.g_col is not None and pts.gray is not None:
         rc = (terms.gray_pred - pts.gray.to(dtype)) * cfg.w_color
         blocks.append((rc, terms.g_col * cfg.w_color, cfg.huber_color * cfg.w_color, cfg.max_residual_m,
                        ok & torch.isfinite(rc)))
     if terms.rf is not None and terms.gf is not None and terms.okf is not None:
-        w = cfg.w_frame
-        blocks.append((terms.rf * w, terms.gf * w, cfg.huber_m * w, cfg.frame_max_m * w,
-                       terms.okf & torch.isfinite(terms.rf)))
+        per_ref = None if reference is None else frame_weights(reference, r.shape[0])
+        if per_ref is None:
+            blocks.append((terms.rf * cfg.w_frame, terms.gf * cfg.w_frame, cfg.huber_m * cfg.w_frame,
+                           cfg.frame_max_m * cfg.w_frame, terms.okf & torch.isfinite(terms.rf)))
+        else:  # with older frames: a weight per residual (0 in empty slots: no pair, no cost)
+            wf = per_ref * cfg.w_frame
+            wr = wf.to(terms.rf.dtype)
+            blocks.append((terms.rf * wr, terms.gf * wr[:, None], wf * cfg.huber_m, wf * cfg.frame_max_m,
+                           terms.okf & (wf > 0) & torch.isfinite(terms.rf)))
     use_photo = reference is not None and reference.gray is not None and cfg.w_photo > 0 and pts.gray is not None
     if use_photo:
         rp, gp, okp = photometric_residuals(reference, p_cam, pts.gray, T, cfg.frame_max_m)
         w = cfg.w_photo
         blocks.append((rp * w, gp * w, cfg.huber_photo * w, 4 * cfg.huber_photo * w, okp & torch.isfinite(rp)))
     n = r.shape[0]
-    m = len(blocks)
     res, g_world, valid = (torch.cat([blk[i] for blk in blocks]) for i in (0, 1, 4))
-    # per residual [m N]: fills on the device (no host-to-device copy per call)
-    k, cap = (torch.cat([res.new_full((n,), blk[i], dtype=torch.float64) for blk in blocks]) for i in (2, 3))
+    m = res.shape[0] // n  # residuals per point (a block holds N, or N per reference)
+    # per residual [m N]: a block's scale and cap are numbers (filled on the device: no host-to-device copy per
+    # call) or already one per residual
+    k, cap = (torch.cat([blk[i].to(torch.float64) if isinstance(blk[i], torch.Tensor)
+                         else res.new_full((blk[0].shape[0],), blk[i], dtype=torch.float64) for blk in blocks])
+              for i in (2, 3))
     p_all = p_cam.repeat(m, 1) if m > 1 else p_cam
     # everything in units of the SDF noise scale: residual / huber_m
     scale = 1.0 / cfg.huber_m
@@ -611,7 +694,8 @@ def linearize_signature(voxels: VoxelMap, decoder: SDFDecoder, pts: SdfPoints, c
     options = (cfg.huber_m, cfg.max_residual_m, cfg.w_color, cfg.huber_color, cfg.w_frame, cfg.frame_max_m,
                cfg.w_photo, cfg.huber_photo)
     ref = None if reference is None else (reference.baseline_px, reference.gray is None,
-                                          reference.gray_blurred is None)
+                                          reference.gray_blurred is None,
+                                          None if reference.older_depth is None else reference.older_depth.shape[0])
     # the corner-weight gradient gathers per voxel or per point, whichever are fewer (field._corner_weight_grad)
     points_outnumber_voxels = pts.p_cam.shape[0] > voxels.voxel_vertex_ids.shape[0]
     return ("linearize_terms", options, pts.gray is None, pts.gray_blurred is None, ref, voxels.voxel_size_m,
@@ -645,6 +729,11 @@ def _stages(levels: list[SdfPoints], cfg: SdfSolverConfig, reference: DepthRefer
     return stages
 
 
+_REFERENCE_GEOMETRY = ("depth_padded", "K", "T_ref_world", "offsets", "older_depth", "T_older_world",
+                       "older_weights")
+"""The :class:`DepthReference` fields the point-to-plane term reads (its gray images aside)."""
+
+
 def _shares_pose_terms(a: tuple[SdfPoints, SdfSolverConfig, DepthReference | None],
                        b: tuple[SdfPoints, SdfSolverConfig, DepthReference | None]) -> bool:
     """Whether two solver stages ``(points, options, reference)`` have the same :class:`PoseTerms` at a pose:
@@ -654,7 +743,7 @@ def _shares_pose_terms(a: tuple[SdfPoints, SdfSolverConfig, DepthReference | Non
     (pa, ca, ra), (pb, cb, rb) = a, b
     same_ref = (ra is None and rb is None) or (
         ra is not None and rb is not None and ra.baseline_px == rb.baseline_px
-        and all(getattr(ra, f) is getattr(rb, f) for f in ("depth_padded", "K", "T_ref_world", "offsets")))
+        and all(getattr(ra, f) is getattr(rb, f) for f in _REFERENCE_GEOMETRY))
     return (pa.p_cam is pb.p_cam and (pa.gray is None) == (pb.gray is None) and same_ref
             and (ca.max_residual_m, ca.w_color, ca.w_frame, ca.frame_max_m)
             == (cb.max_residual_m, cb.w_color, cb.w_frame, cb.frame_max_m))

@@ -57,10 +57,13 @@ def perturbed(T: np.ndarray) -> np.ndarray:
 
 def solver_inputs(cap, cfg, mapper, index: int, device: str, seed: int = 3, snapshot=None):
     """Two levels of a frame's points with every gray level, and a tracker on ``snapshot`` (default: a new one of
-    the mapper's map) holding the previous frame as the reference (blurred image too)."""
-    tr = Tracker(TrackingConfig(method="sdf", sdf_w_photo=0.1, sdf_w_photo_blur=0.3), cfg.render, use_color=True)
+    the mapper's map) holding the previous frame as the reference (blurred image too) and the two before it as older
+    references (one slot of three still empty)."""
+    tr = Tracker(TrackingConfig(method="sdf", sdf_w_photo=0.1, sdf_w_photo_blur=0.3, sdf_frame_refs=3,
+                                sdf_frame_refs_fade=2), cfg.render, use_color=True)
     tr.set_map(*(snapshot or (mapper.voxels.snapshot(), mapper.decoder)))
-    tr.remember(frame_to_device(cap[index - 1], device), cap[index - 1].T_world_cam)
+    for k in (index - 3, index - 2, index - 1):
+        tr.remember(frame_to_device(cap[k], device), cap[k].T_world_cam)
     frame = frame_to_device(cap[index], device)
     images = tr._gray_images(frame)
     gen = torch.Generator(device=device).manual_seed(seed)

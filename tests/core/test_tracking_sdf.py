@@ -144,6 +144,113 @@ def test_frame_term_normal_equations_match_autograd_jacobian(room):
     torch.testing.assert_close(b1 - b0, J.T @ r / n, rtol=2e-3, atol=1e-6)
 
 
+def test_older_frames_stack_newest_first_with_fixed_shapes():
+    """``with_older_frames`` keeps the last ``count`` references before the newest, newest first, the oldest dropped;
+    slots not filled yet are zero depth at weight 0, so the stack's shapes never change; another image size starts
+    afresh."""
+    cap = SyntheticCapture(SyntheticConfig(n_frames=6, width=48, height=36, seed=2))
+    refs = [depth_reference(frame_to_device(f, "cpu"), f.T_world_cam) for f in cap.frames(0, 5)]
+    stacked = tracking_sdf.with_older_frames(refs[0], None, 3, 0.5)
+    assert stacked.older_depth.shape == (3, *refs[0].depth_padded.shape)
+    assert torch.equal(stacked.older_weights, torch.zeros(3, dtype=torch.float64))
+    assert not stacked.older_depth.any()
+    for k in range(1, 5):
+        stacked = tracking_sdf.with_older_frames(refs[k], stacked, 3, 1.0 / k)
+        assert stacked.older_depth.shape == (3, *refs[0].depth_padded.shape)
+        filled = min(k, 3)
+        expected = torch.tensor([1.0 / k] * filled + [0.0] * (3 - filled), dtype=torch.float64)
+        torch.testing.assert_close(stacked.older_weights, expected, rtol=0, atol=0)
+        for slot in range(filled):  # slot 0: the frame before the newest
+            older = refs[k - 1 - slot]
+            assert torch.equal(stacked.older_depth[slot], older.depth_padded)
+            assert torch.equal(stacked.T_older_world[slot], older.T_ref_world)
+    assert torch.equal(stacked.depth_padded, refs[4].depth_padded)
+    small = SyntheticCapture(SyntheticConfig(n_frames=1, width=32, height=24, seed=2))[0]
+    fresh = tracking_sdf.with_older_frames(depth_reference(frame_to_device(small, "cpu"), small.T_world_cam),
+                                           stacked, 3, 1.0)
+    assert fresh.older_depth.shape == (3, 28, 36) and not fresh.older_weights.any()
+
+
+def test_older_frames_residuals_and_normal_equations_are_each_references_own(room):
+    """Against a reference with older frames, the point-to-plane residuals are those against each frame on its own
+    (the batched association against the one-reference one), and H and b add each older frame's own term at its
+    weight: H(newest + older) - H(newest) = sum_k w_k (H(older k alone) - H(map only)); an empty slot adds nothing."""
+    cap, cfg, mapper = room
+    f = cap[7]
+    data = frame_to_device(f, "cpu")
+    refs = [depth_reference(frame_to_device(cap[k], "cpu"), cap[k].T_world_cam) for k in (4, 5, 6)]
+    stacked = tracking_sdf.with_older_frames(refs[1], tracking_sdf.with_older_frames(refs[0], None, 3, 1.0), 3, 1.0)
+    stacked = tracking_sdf.with_older_frames(refs[2], stacked, 3, 0.5)  # 6 newest; older 5, 4 at 0.5; one empty
+    pts = sample_points(data, 256, torch.Generator().manual_seed(0))
+    T = torch.as_tensor(perturb(f.T_world_cam, 0.1))
+    n = pts.p_cam.shape[0]
+    r, g, ok = frame_residuals(stacked, pts.p_cam, T, 0.05)
+    assert r.shape == (4 * n,) and g.shape == (4 * n, 3)
+    for slot, ref in enumerate((refs[2], refs[1], refs[0])):
+        r1, g1, ok1 = frame_residuals(ref, pts.p_cam, T, 0.05)
+        assert int(ok1.sum()) > 100
+        assert torch.equal(ok[slot * n:(slot + 1) * n], ok1)
+        torch.testing.assert_close(r[slot * n:(slot + 1) * n][ok1], r1[ok1], rtol=0, atol=1e-6)
+        torch.testing.assert_close(g[slot * n:(slot + 1) * n][ok1], g1[ok1], rtol=0, atol=1e-6)
+    assert not ok[3 * n:].any()  # the empty slot associates nothing
+    torch.testing.assert_close(tracking_sdf.frame_weights(stacked, 2),
+                               torch.tensor([1, 1, 0.5, 0.5, 0.5, 0.5, 0, 0], dtype=torch.float64))
+    frame = SdfSolverConfig(huber_m=0.01, max_residual_m=0.08, w_frame=2.0, frame_max_m=0.05)
+    plain = replace(frame, w_frame=0.0)
+
+    def normal_equations(scfg, ref):
+        cost, H, b, _, _ = linearize(mapper.voxels, mapper.decoder, pts, T, scfg, ref)
+        return cost, H, b
+
+    base = normal_equations(plain, None)
+    newest = normal_equations(frame, refs[2])
+    both = normal_equations(frame, stacked)
+    # each older reference at half the weight: at half the Huber scale and cap too, so its whole term scales by 0.5^2
+    halved = replace(frame, w_frame=frame.w_frame * 0.5)
+    for a, b_, c0, c1, c2 in zip(both, newest, base, normal_equations(halved, refs[1]),
+                                 normal_equations(halved, refs[0]), strict=True):
+        torch.testing.assert_close(a - b_, (c1 - c0) + (c2 - c0), rtol=1e-6, atol=1e-9)
+
+
+def test_tracker_keeps_older_frames_at_a_fading_weight(room):
+    """``sdf_frame_refs`` older references follow the accepted frames at ``min(1, fade / n)`` until that falls below
+    ``FRAME_REFS_MIN_WEIGHT``; with 0 there are none;
+    relocalisation against a keyframe (``referenced_to``) compares with that keyframe alone and puts the history
+    back."""
+    cap, cfg, mapper = room
+    tr = tracker_for(cfg, mapper, method="sdf", sdf_frame_refs=2, sdf_frame_refs_fade=2)
+    for k in range(4):
+        tr.remember(frame_to_device(cap[k], "cpu"), cap[k].T_world_cam)
+        filled = min(k, 2)
+        weight = min(1.0, 2 / (k + 1))
+        expected = torch.tensor([weight] * filled + [0.0] * (2 - filled), dtype=torch.float64)
+        torch.testing.assert_close(tr._reference.older_weights, expected, rtol=0, atol=1e-12)
+    saved = tr._reference
+    with tr.referenced_to(frame_to_device(cap[0], "cpu"), cap[0].T_world_cam):
+        assert not tr._reference.older_weights.any()
+    assert tr._reference is saved and tr._accepted == 4
+    for k in range(4, 9):  # the weight falls to 2 / 8 = FRAME_REFS_MIN_WEIGHT at the 8th frame, below it at the 9th
+        f = cap[k % 8]
+        tr.remember(frame_to_device(f, "cpu"), f.T_world_cam)
+        assert (tr._reference.older_depth is None) == (k == 8)
+    plain = tracker_for(cfg, mapper, method="sdf", sdf_frame_refs=0)
+    plain.remember(frame_to_device(cap[0], "cpu"), cap[0].T_world_cam)
+    plain.remember(frame_to_device(cap[1], "cpu"), cap[1].T_world_cam)
+    assert plain._reference.older_depth is None
+
+
+def test_older_frames_track_a_perturbed_frame(room):
+    """With three older references the tracker still recovers a known perturbation (the same test as without)."""
+    cap, cfg, mapper = room
+    tr = tracker_for(cfg, mapper, method="sdf", sdf_frame_refs=3)
+    for k in (3, 4, 5):
+        tr.remember(frame_to_device(cap[k], "cpu"), cap[k].T_world_cam)
+    f = cap[6]
+    out = tr.track(frame_to_device(f, "cpu"), perturb(f.T_world_cam))
+    dt, dr = pose_error(out.T_world_cam, f.T_world_cam)
+    assert not out.lost and dt < 0.01 and dr < 0.5, (dt, dr)
+
+
 def test_frame_term_sharpens_tracking_on_a_coarse_map():
     """A map given 5 optimisation rounds is too blurred to place a frame well; the previous frame's depth
     (``remember``) is not. Same frame, prior and sampled points, with and without the term."""
