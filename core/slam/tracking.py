@@ -180,12 +180,13 @@ class TrackingConfig:
     ``min(1, sdf_frame_refs_fade / n)`` after ``n`` accepted frames: while the map has been fitted to a handful of
     noisy frames its SDF is no better an anchor than a frame's depth, and references whose noise and pose errors
     are independent average it out; as the map integrates more frames it takes over. One projective association
-    per reference and field evaluation, no field query. Measured (2026-12-07, ATE cm seeds 0/1/2, 2-core AMD EPYC,
-    one thread, tracker uncompiled; 0 -> 3): TUM fr1 desk 0.233/0.175/0.168 -> 0.167/0.153/0.124 (TSDF baseline
-    0.173), 7-Scenes 0-499 4.06/3.86/3.78 -> 3.90/3.84/3.77, synthetic room 0.136/0.182/0.213 ->
-    0.115/0.210/0.195, fast rotation 0.375/0.285/0.254 -> 0.208/0.224/0.221. Three references at full weight
-    throughout cost 7-Scenes 17-23 %, one reference at four times the weight drifted to 12 cm there
-    (docs/engine-history.md)."""
+    per reference and field evaluation, no field query. Measured (2026-12-07, ATE cm, 2-core AMD EPYC, one thread,
+    tracker uncompiled; 0 -> 3): TUM fr1 desk seeds 0/1/2 0.233/0.175/0.168 -> 0.163/0.144/0.118 (TSDF baseline
+    0.173), 7-Scenes 0-499 4.06/3.86/3.78 -> 4.08/3.87/3.85, synthetic room 0.136/0.182/0.213 -> 0.114/0.209/0.186,
+    fast rotation 0.375/0.285/0.254 -> 0.220/0.230/0.258, held-out synthetic seeds 3-6 0.700/0.147/0.140/0.146 ->
+    0.925/0.136/0.143/0.141, held-out fast rotation seeds 3-9 0.520/0.344/0.302/0.372/0.265/0.239/0.205 ->
+    0.560/0.419/0.283/0.205/0.285/0.201/0.321. Three references at full weight throughout cost 7-Scenes 17-23 %;
+    one reference at four times the weight drifted to 12 cm there (docs/engine-history.md)."""
     sdf_frame_refs_fade: int = 16
     """``sdf`` method: accepted frames over which the older references keep the previous frame's weight
     (``sdf_frame_refs``; half a second at 30 Hz); after them it falls as 1 / frames, and below

@@ -28,6 +28,7 @@ from voxfusion.core.slam.tracking_sdf import (
     linearize_signature,
     linearize_terms,
     sample_points,
+    with_older_frames,
 )
 
 TINY = ["device=cpu", "mapping.rays_per_frame=192", "mapping.iters=8", "mapping.first_frame_iters=40"]
@@ -126,13 +127,18 @@ def room():
 
 
 def test_the_tracker_evaluation_artifact_is_the_plain_function_as_the_map_grows(room, tmp_path):
-    """``tracking.precompiled``'s function with every term (SDF, frame-to-frame, photometric), compiled ahead of
-    time on one map and loaded: the same residuals and normal equations as :func:`linearize_terms` on that map,
-    at another pose, and on a grown map (its tables change size every frame), whose signature is the same."""
+    """``tracking.precompiled``'s function with every term (SDF, frame-to-frame with two older frames and an empty
+    slot, photometric), compiled ahead of time on one map and loaded: the same residuals and normal equations as
+    :func:`linearize_terms` on that map, at another pose, and on a grown map (its tables change size every frame),
+    whose signature is the same."""
     cap, mapper = room
     f, f_ref = cap[7], cap[6]
     ref_data = frame_to_device(f_ref, "cpu")
-    ref = depth_reference(ref_data, f_ref.T_world_cam, images=gray_images(ref_data.color))
+    newest = depth_reference(ref_data, f_ref.T_world_cam, images=gray_images(ref_data.color))
+    older = None
+    for k in (4, 5):
+        older = with_older_frames(depth_reference(frame_to_device(cap[k], "cpu"), cap[k].T_world_cam), older, 3, 1.0)
+    ref = with_older_frames(newest, older, 3, 0.5)
     pts = sample_points(frame_to_device(f, "cpu"), 512, torch.Generator().manual_seed(0), with_gray=True)
     scfg = SdfSolverConfig(w_frame=1.0, w_photo=0.1)
     xi = torch.tensor([0.003, -0.002, 0.0025, 0.003, -0.002, 0.001], dtype=torch.float64)
@@ -160,9 +166,12 @@ def test_the_tracker_evaluation_artifact_is_the_plain_function_as_the_map_grows(
         torch.testing.assert_close(got[3].r, terms.r, rtol=1e-4, atol=1e-6)
         torch.testing.assert_close(got[3].grads, terms.grads, rtol=1e-4, atol=1e-5)
         assert torch.equal(got[3].ok, terms.ok)
+        torch.testing.assert_close(got[3].rf, terms.rf, rtol=1e-4, atol=1e-6)
+        assert torch.equal(got[3].okf, terms.okf) and int(terms.okf[3 * 512:].sum()) == 0  # the empty slot
     # another option is another variant: a different artifact name
     other = SdfSolverConfig(w_frame=1.0, w_photo=0.2)
     assert linearize_signature(voxels, decoder, pts, other, ref) != signature
+    assert linearize_signature(voxels, decoder, pts, scfg, newest) != signature  # no older frames: another too
     assert np.isfinite(float(cost))
 
 
