@@ -15,8 +15,11 @@
 #     room seeds 0/1/2 with the camera back at frame 15's place after frame 59 and a 1 s pause, both methods, and
 #     ours again without keyframe start poses, and the same on 7-Scenes (frames 0-199, then back at frame 50's
 #     place for 30 frames) (bench/results/revisit_*.json).
-# Usage: bash bench/engine_targets.sh [--quick | --heldout | --gap]   (--quick: seed 0 only, no held-out seeds;
-#   --heldout: only the held-out seeds)
+#   * with --strides: only frames dropped on real depth, 7-Scenes redkitchen frames 0-499 keeping every 2nd / 4th /
+#     8th / 16th frame (15 / 7.5 / 3.75 / 1.9 Hz: 1.5 / 3.0 / 5.9 / 11.8 cm and 0.7 / 1.3 / 2.3 / 4.5 deg between
+#     frames, medians), both methods, ours seeds 0/1/2 (bench/results/stride_*.json).
+# Usage: bash bench/engine_targets.sh [--quick | --heldout | --gap | --strides]   (--quick: seed 0 only, no held-out
+#   seeds; --heldout: only the held-out seeds)
 set -u
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
@@ -52,6 +55,19 @@ if [ "${1:-}" = "--gap" ]; then
         run "revisit_sevenscenes_200f_no_keyframes" --capture "$DATA/sevenscenes_redkitchen" --max-frames 200 \
             --revisit 200+50+30 --method voxfusion --vf-set tracking.retry_keyframes=0
     fi
+    exit 0
+fi
+if [ "${1:-}" = "--strides" ]; then
+    [ -d "$DATA/sevenscenes_redkitchen" ] || { echo "[targets] no $DATA/sevenscenes_redkitchen"; exit 1; }
+    for st in 2 4 8 16; do
+        run "stride_sevenscenes_500f_stride${st}_seed0" --capture "$DATA/sevenscenes_redkitchen" --max-frames $((500 / st)) \
+            --stride "$st" --method baseline voxfusion
+        for s in $SEEDS; do
+            [ "$s" = 0 ] && continue
+            run "stride_sevenscenes_500f_stride${st}_seed$s" --capture "$DATA/sevenscenes_redkitchen" \
+                --max-frames $((500 / st)) --stride "$st" --method voxfusion --vf-set "seed=$s"
+        done
+    done
     exit 0
 fi
 # The cpu preset's tracker runs from precompiled artifacts (tracking.precompiled) that a machine's first runs compile

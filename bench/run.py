@@ -283,10 +283,12 @@ def _open(args: argparse.Namespace) -> tuple[Capture, trimesh.Trimesh | None, st
         from voxfusion.core.datasets import detect_format, open_capture
 
         fmt = detect_format(args.capture)
-        capture = open_capture(args.capture, limit=args.max_frames)
+        capture = open_capture(args.capture, limit=args.max_frames, stride=args.stride)
         gt = load_mesh(capture.gt_mesh_path) if capture.gt_mesh_path is not None else None
-        name = capture.name + (f"_{len(capture)}f" if args.max_frames is not None else "")
-        desc = {"kind": fmt, "path": str(Path(args.capture)), "gt_mesh_path": capture.gt_mesh_path}
+        name = (capture.name + (f"_{len(capture)}f" if args.max_frames is not None else "")
+                + (f"_stride{args.stride}" if args.stride > 1 else ""))
+        desc = {"kind": fmt, "path": str(Path(args.capture)), "gt_mesh_path": capture.gt_mesh_path,
+                "stride": args.stride}
     if args.depth_gap is not None:
         from functools import partial
 
@@ -418,6 +420,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", nargs="+", default=["baseline"], choices=[*METHODS, *PLANNED_METHODS],
                    help="methods to run, in order (default: baseline)")
     p.add_argument("--max-frames", type=int, default=None, help="use at most this many frames")
+    p.add_argument("--stride", type=int, default=1,
+                   help="capture: use every N-th frame (N times the motion between frames; --max-frames counts "
+                        "the frames kept)")
     p.add_argument("--name", default=None, help="result name (default: from the capture)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (default bench/results)")
     p.add_argument("--baseline-preset", default="auto", choices=["auto", *BASELINE_PRESETS],
@@ -437,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    for name in ("frames", "max_frames", "width", "height", "mesh_samples"):
+    for name in ("frames", "max_frames", "width", "height", "mesh_samples", "stride"):
         v = getattr(args, name)
         if v is not None and v < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {v}")
@@ -445,6 +450,8 @@ def _check_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
         p.error(f"--cull-stride must be >= 0, got {args.cull_stride}")
     if not args.synthetic and (args.width or args.height or args.lidar):
         p.error("--width/--height/--lidar apply to --synthetic only")
+    if args.synthetic and args.stride != 1:
+        p.error("--stride applies to --capture only (--yaw-rate-deg-s makes a synthetic trajectory fast)")
     if args.voxel_size_m is not None and not args.voxel_size_m > 0:
         p.error(f"--voxel-size-m must be > 0, got {args.voxel_size_m}")
     methods = list(dict.fromkeys(args.method))

@@ -280,6 +280,30 @@ def test_run_py_revisit_comes_back_and_names_the_result():
             build_parser().parse_args(["--synthetic", "--revisit", bad])
 
 
+def test_run_py_stride_keeps_every_nth_frame_with_its_reference_pose(shared_data):
+    from bench.run import _open, build_parser
+    from voxfusion.core.datasets import open_capture
+
+    path = shared_data / "tum_fr1_desk_9frames"
+    args = build_parser().parse_args(["--capture", str(path), "--stride", "3"])
+    capture, _, name, desc = _open(args)
+    full = open_capture(path)
+    assert name.endswith("_stride3") and desc["stride"] == 3 and len(capture) == 3
+    for i in range(3):
+        assert capture[i].timestamp_s == full[3 * i].timestamp_s
+        np.testing.assert_array_equal(capture[i].T_world_cam, full[3 * i].T_world_cam)
+    for bad in (["--capture", str(path), "--stride", "0"], ["--synthetic", "--stride", "2"]):
+        with pytest.raises(SystemExit):
+            _check_parsed(bad)
+
+
+def _check_parsed(argv: list[str]) -> None:
+    from bench.run import _check_args, build_parser
+
+    parser = build_parser()
+    _check_args(parser, parser.parse_args(argv))
+
+
 def test_run_py_with_a_depth_gap_runs_and_evaluates(tmp_path):
     from bench.run import main
 
