@@ -230,15 +230,17 @@ def finish_and_download(client: BaseClient, out_dir: str | Path | None, *,
 
 def session_summary(status: SessionStatusOut) -> str:
     """One line on what the server did with a session's frames, e.g.
-    ``session 3f2a... finished: 942 received, 310 tracked (2 lost), 632 dropped by the server, 31 keyframes,
+    ``session 3f2a... finished: 942 received, 310 tracked (2 lost, 1 limited), 632 dropped by the server, 31 keyframes,
     2210 voxels``.
 
     ``dropped``: frames recorded but skipped by tracking to keep up (realtime sessions; they stay in the
     recording); ``lost``: tracked frames whose tracking failed (``frames_lost``: their pose is the motion
-    model's guess and they are not fused).
+    model's guess and they are not fused); ``limited``: tracked frames whose cost jumped (``frames_limited``:
+    the pose may be wrong; they are fused).
     """
     line = (f"session {status.id} {status.state.value}: {status.frames_received} received, "
-            f"{status.frames_tracked} tracked ({status.frames_lost} lost), {status.frames_dropped} dropped by the "
+            f"{status.frames_tracked} tracked ({status.frames_lost} lost, {status.frames_limited} limited), "
+            f"{status.frames_dropped} dropped by the "
             f"server, {status.keyframes} keyframes, {status.voxels} voxels")
     return line + (f", error: {status.last_error}" if status.last_error else "")
 

@@ -213,7 +213,7 @@ def run_capture(capture: Capture, config: VoxFusionConfig, out_dir: str | Path |
         if rec is not None:
             loss = rec.tracking.loss if rec.tracking else float("nan")
             bar.set_postfix(frame=rec.index, fps=f"{st.fps:.2f}", loss=f"{loss:.3f}", kf=st.keyframes,
-                            lost=st.frames_lost, dropped=st.frames_dropped)
+                            lost=st.frames_lost, limited=st.frames_limited, dropped=st.frames_dropped)
         bar.update(1)
     slam.finish()
     bar.close()
@@ -272,6 +272,7 @@ def _frame_rows(slam: SlamSystem) -> list[dict]:
         t, m = r.tracking, r.mapping
         rows.append({
             "index": r.index, "timestamp_s": r.timestamp_s, "lost": r.lost, "keyframe": r.keyframe is not None,
+            "tracking_state": r.tracking_state, "cost_ratio": r.cost_ratio,
             "tracking_ms": t.time_ms if t else None, "tracking_iters": t.iterations if t else 0,
             "tracking_loss": t.loss if t else None, "valid_rays": t.valid_rays if t else None,
             "depth_residual_m": t.depth_residual_m if t else None,

@@ -188,6 +188,15 @@ class PoseOut(_Model):
     """Final tracking loss (lower is better; comparable within one session), ``None`` if not tracked."""
     lost: bool = False
     """Tracking failed for this frame (the pose is the motion-model prediction)."""
+    tracking_state: Literal["normal", "limited", "lost"] = "normal"
+    """``lost`` as ``lost``; ``limited``: tracked, but its cost jumped to more than ``tracking.limited_cost_factor``
+    (3) times the median of the frames before it (``cost_ratio``), so the pose may be wrong: a start beyond the
+    tracker's reach (fast motion, dropped frames), or a view turning into space the map has not seen. The frame is
+    still fused. ARKit's ``ARCamera.TrackingState`` has the same three; an AR app may hold its anchors while it is
+    not ``normal``."""
+    cost_ratio: float | None = None
+    """The frame's tracking cost over the median cost of the tracked frames before it (about 1 while tracking goes
+    well); None for the first frames, frames not tracked and lost ones."""
     is_keyframe: bool = False
 
     @field_validator("T_world_cam", mode="before")

@@ -158,6 +158,8 @@ _PER_SESSION = (
     ("voxfusion_session_frames_dropped_total", "counter", "Frames skipped by realtime tracking.", "frames_dropped"),
     ("voxfusion_session_frames_retried_total", "counter",
      "Frames tracked again from other starts (after a gap, or a turn before any motion was known).", "frames_retried"),
+    ("voxfusion_session_frames_limited_total", "counter",
+     "Frames tracked with a cost jump (tracking state limited: the pose may be wrong).", "frames_limited"),
     ("voxfusion_session_frames_relocalised_total", "counter", "Frames placed from a keyframe's pose after a gap.",
      "frames_relocalised"),
     ("voxfusion_session_keyframes", "gauge", "Keyframes.", "keyframes"),

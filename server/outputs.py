@@ -58,8 +58,10 @@ def pose_out(rec: FrameRecord, refined: bool = True) -> PoseOut:
     loss = rec.tracking.loss if rec.tracking is not None else None
     if loss is not None and not np.isfinite(loss):
         loss = None
+    ratio = rec.cost_ratio if rec.cost_ratio is not None and np.isfinite(rec.cost_ratio) else None
     return PoseOut(seq=int(rec.index), timestamp_s=float(rec.timestamp_s), T_world_cam=np.asarray(T).tolist(),
-                   tracking_loss=loss, lost=bool(rec.lost), is_keyframe=rec.keyframe is not None)
+                   tracking_loss=loss, lost=bool(rec.lost), tracking_state=rec.tracking_state, cost_ratio=ratio,
+                   is_keyframe=rec.keyframe is not None)
 
 
 def tum_text(poses: list[PoseOut]) -> str:

@@ -346,7 +346,7 @@ class Session:
             id=self.id, name=self.name, mode=self.mode, state=self.state, created_at=self.created_at,
             frames_received=len(self.recorder), frames_tracked=st.frames_tracked, frames_mapped=st.frames_mapped,
             frames_dropped=st.frames_dropped, frames_lost=st.frames_lost, frames_retried=st.frames_retried,
-            frames_relocalised=st.frames_relocalised,
+            frames_relocalised=st.frames_relocalised, frames_limited=st.frames_limited,
             keyframes=st.keyframes, voxels=st.voxels,
             fps=max(0.0, st.fps), latency_ms=st.latency_ms if math.isfinite(st.latency_ms) else None,
             last_error=self.last_error, map_version=st.map_version,

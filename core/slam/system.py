@@ -26,10 +26,11 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -58,9 +59,25 @@ from .presets import VoxFusionConfig, resolve_device
 from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
 from .tracking_sdf import PRECOMPILED_LINEARIZE
 
-__all__ = ["FrameRecord", "SlamStats", "MapSnapshot", "SlamSystem", "realtime_thread_count"]
+__all__ = ["FrameRecord", "TrackingState", "cost_ratio", "SlamStats", "MapSnapshot", "SlamSystem",
+           "realtime_thread_count"]
 
 log = logging.getLogger("voxfusion.slam")
+
+TrackingState = Literal["normal", "limited", "lost"]
+"""A frame's :attr:`FrameRecord.tracking_state` (ARKit's ``ARCamera.TrackingState`` has the same three)."""
+COST_RATIO_MIN_HISTORY = 3
+"""Tracked frames a frame's :func:`cost_ratio` needs before it (fewer: no ratio, never ``limited``)."""
+
+
+def cost_ratio(cost: float, recent_costs: Sequence[float]) -> float | None:
+    """``cost`` over the median of ``recent_costs`` (the tracked frames before it, at most ``tracking.retry_window``);
+    None with fewer than :data:`COST_RATIO_MIN_HISTORY` of them or a median that is not positive."""
+    if len(recent_costs) < COST_RATIO_MIN_HISTORY:
+        return None
+    median = float(np.median(recent_costs))
+    return cost / median if median > 0 and np.isfinite(cost) else None
+
 
 RETRY_MIN_GAIN = 0.5
 """A retry after a gap (``tracking.retry_cost_factor``) replaces a first result that was not lost only when its cost
@@ -115,9 +132,22 @@ class FrameRecord:
     received_at: float = 0.0
     tracked_at: float = 0.0
     data: FrameData | None = dataclasses.field(default=None, repr=False)
+    """The frame's observations while it waits for the mapper (released once mapped)."""
     T_device: np.ndarray | None = dataclasses.field(default=None, repr=False)
     """The frame's device pose (ARKit), when it carries a usable one: the motion prior of the next frames."""
-    """The frame's observations while it waits for the mapper (released once mapped)."""
+    cost_ratio: float | None = None
+    """The frame's tracking cost over the median cost of the tracked frames before it (:func:`cost_ratio`); None for
+    the first frames, frames not tracked and lost ones."""
+    limited: bool = False
+    """Tracked, but its cost jumped (``cost_ratio`` over ``tracking.limited_cost_factor``): the pose may be wrong
+    (:attr:`tracking_state`)."""
+
+    @property
+    def tracking_state(self) -> TrackingState:
+        """``lost`` (not tracked: the pose is the motion model's guess, the frame is not fused), ``limited`` (tracked,
+        but its cost jumped against the frames before it: a start beyond the solver's reach, or a view turning into
+        space the map has not seen, which also costs more; still fused) or ``normal``."""
+        return "lost" if self.lost else "limited" if self.limited else "normal"
 
     def current_pose(self) -> np.ndarray:
         """Pose ``[4, 4]`` with the newest keyframe refinements applied.
@@ -166,6 +196,8 @@ class SlamStats:
     (``tracking.first_motion_max_deg``)."""
     frames_relocalised: int = 0
     """Of those, the frames placed from a keyframe's pose (``tracking.retry_keyframes``)."""
+    frames_limited: int = 0
+    """Frames tracked with a cost jump (:attr:`FrameRecord.tracking_state` ``limited``; not counted as lost)."""
 
 
 @dataclass(frozen=True)
@@ -398,10 +430,16 @@ class SlamSystem:
                         res = self._retry_from_other_starts(data, res, prior)
                     elif not prior_from_device and self._needs_first_motion_search():
                         res = self._search_first_motion(data, res)
+                ratio = None if res.lost else cost_ratio(res.loss, self._recent_costs)
                 if not res.lost:
                     self._note_tracked(frame, res)
+                factor = self.config.tracking.limited_cost_factor
                 rec = FrameRecord(frame.index, frame.timestamp_s, res.T_world_cam, lost=res.lost, tracking=res,
-                                  received_at=received_at)
+                                  received_at=received_at, cost_ratio=ratio,
+                                  limited=factor > 0 and ratio is not None and ratio > factor)
+                if rec.limited:
+                    log.info("frame %d tracked with limited confidence: cost %.3g, %.1f times the recent median",
+                             frame.index, res.loss, ratio)
         rec.data = None if rec.lost else data
         rec.T_device = frame.T_world_cam_device
         kfs = self.mapper.keyframes
@@ -817,7 +855,7 @@ class SlamSystem:
             lat = float(np.mean(self._latencies)) if self._latencies else float("nan")
             return SlamStats(
                 frames_received=self._received, frames_tracked=tracked, frames_mapped=self._mapped,
-                frames_dropped=self._dropped, frames_lost=lost,
+                frames_dropped=self._dropped, frames_lost=lost, frames_limited=sum(r.limited for r in self.records),
                 keyframes=len(self.mapper.keyframes) if self.mapper else 0,
                 voxels=self.mapper.voxels.n_voxels if self.mapper else 0,
                 fps=tracked / elapsed if elapsed > 0 else 0.0, latency_ms=lat,

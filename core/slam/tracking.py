@@ -320,6 +320,12 @@ class TrackingConfig:
     retry). 0: none. The synthetic room (seed 1), frames 0-59, then after a 1 s pause frames 15-29 again (the camera
     38 cm and 26 deg from where it was last tracked, beyond the turns and the grid): without them every later frame
     stayed ~32-36 cm off."""
+    limited_cost_factor: float = 3.0
+    """A tracked frame costing more than this times the median cost of the tracked frames before it (the last
+    ``retry_window``, at least three) has the tracking state ``limited`` (:attr:`.system.FrameRecord.tracking_state`:
+    on every pose the server returns, counted in a session's status): its pose may be wrong. It is still fused,
+    since a view turning into space the map has not seen costs more too. 0: never limited. Decides nothing in the
+    engine: a signal for clients (an AR app can hold its anchors while the state is limited)."""
     refine_iters: int = 0
     """``sdf`` method: iterations of the render tracker run after it (0: none), with the small steps of
     ``lr_device_prior`` (it starts at the ``sdf`` tracker's pose, a few millimetres from the answer)."""
@@ -327,8 +333,9 @@ class TrackingConfig:
     """Loss weights used for tracking."""
 
     def __post_init__(self) -> None:
-        if not self.retry_cost_factor >= 0:
-            raise ConfigError("retry_cost_factor", f"must be >= 0 (0: off), got {self.retry_cost_factor}")
+        for name in ("retry_cost_factor", "limited_cost_factor"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(name, f"must be >= 0 (0: off), got {getattr(self, name)}")
         if self.retry_keyframes < 0:
             raise ConfigError("retry_keyframes", f"must be >= 0 (0: none), got {self.retry_keyframes}")
         if not (self.retry_gap > 1 and self.retry_step_deg > 0 and self.retry_max_deg >= 0 and self.retry_step_m > 0

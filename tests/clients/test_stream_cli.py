@@ -141,7 +141,7 @@ def test_realtime_sends_at_the_capture_rate_and_reports_drops(server, tmp_path):
     status = server.manager.status(sid)
     assert status.mode.value == "realtime"
     assert re.search(rf"session {sid} finished: 6 received, {status.frames_tracked} tracked "
-                     rf"\({status.frames_lost} lost\), "
+                     rf"\({status.frames_lost} lost, {status.frames_limited} limited\), "
                      rf"{status.frames_dropped} dropped by the server", result.output)
     assert status.frames_tracked + status.frames_dropped == 6
     token = json.loads((out / "session.json").read_text())["token"]

@@ -101,6 +101,7 @@ def test_metrics_parse_and_label_every_route_by_its_template(server_factory, sce
     assert value(m, "voxfusion_session_frames_retried", "voxfusion_session_frames_retried_total", session=sid) == 0
     assert value(m, "voxfusion_session_frames_relocalised", "voxfusion_session_frames_relocalised_total",
                  session=sid) == 0
+    assert value(m, "voxfusion_session_frames_limited", "voxfusion_session_frames_limited_total", session=sid) == 0
 
 
 def test_metrics_keep_the_api_key(server_factory):

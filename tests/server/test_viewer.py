@@ -159,7 +159,7 @@ def test_viewer_shows_the_scan_growing_in_chromium(server_factory):
         diff = np.abs(_scene_region(later) - _scene_region(first)).mean()
         assert diff > 1.0, f"the 3D view did not change as frames arrived (mean abs difference {diff:.2f})"
         panel_text = driver.find_element("id", "counters").text
-        assert "tracked" in panel_text and "dropped" in panel_text and "lost" in panel_text
+        assert "tracked" in panel_text and "dropped" in panel_text and "lost" in panel_text and "limited" in panel_text
         severe = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
         assert not severe, severe
 

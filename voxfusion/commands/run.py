@@ -114,8 +114,8 @@ def register(app: typer.Typer) -> None:
         st = result.stats
         timings = timing_summary(result)
         rows = [{"metric": label, "value": timings[key]} for key, label in TIMING_LABELS.items()]
-        rows += [{"metric": "frames tracked / lost / dropped",
-                  "value": f"{st.frames_tracked} / {st.frames_lost} / {st.frames_dropped}"},
+        rows += [{"metric": "frames tracked / lost / limited / dropped",
+                  "value": f"{st.frames_tracked} / {st.frames_lost} / {st.frames_limited} / {st.frames_dropped}"},
                  {"metric": "keyframes", "value": st.keyframes}, {"metric": "voxels", "value": st.voxels}]
         for key in ("ate_se3", "ate_none"):
             if key in result.metrics:

@@ -2,7 +2,7 @@
 
 const COUNTERS = [
   ['frames_received', 'received'], ['frames_tracked', 'tracked'], ['frames_lost', 'lost'],
-  ['frames_dropped', 'dropped'], ['keyframes', 'keyframes'], ['voxels', 'voxels'],
+  ['frames_limited', 'limited'], ['frames_dropped', 'dropped'], ['keyframes', 'keyframes'], ['voxels', 'voxels'],
   ['fps', 'tracking fps', (v) => v.toFixed(1)], ['latency_ms', 'latency', (v) => (v == null ? '–' : `${v.toFixed(0)} ms`)],
   ['map_version', 'map version'],
 ];
@@ -42,7 +42,8 @@ export class Panel {
   setPose(pose) {
     const T = pose.T_world_cam;
     const position = [T[0][3], T[1][3], T[2][3]].map((v) => v.toFixed(3)).join(', ');
-    this.pose.textContent = `frame ${pose.seq}${pose.lost ? ' (lost)' : ''}\nposition [${position}] m`;
+    const state = pose.tracking_state ?? (pose.lost ? 'lost' : 'normal');  // older servers send only `lost`
+    this.pose.textContent = `frame ${pose.seq}${state === 'normal' ? '' : ` (${state})`}\nposition [${position}] m`;
   }
 
   setImage(kind, blob) {
