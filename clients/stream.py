@@ -115,11 +115,13 @@ class Pacer:
 
 
 def format_pose(pose: PoseOut | None) -> str:
-    """``"#12 t=(0.12, -0.03, 1.40)"``: a short pose for progress bars."""
+    """``"#12 t=(0.12, -0.03, 1.40)"``: a short pose for progress bars (`` LOST`` / `` LIMITED`` appended when its
+    tracking state is not ``normal``)."""
     if pose is None:
         return "-"
     t = np.asarray(pose.T_world_cam)[:3, 3]
-    return f"#{pose.seq} t=({t[0]:+.2f}, {t[1]:+.2f}, {t[2]:+.2f}){' LOST' if pose.lost else ''}"
+    state = "" if pose.tracking_state == "normal" else f" {pose.tracking_state.upper()}"
+    return f"#{pose.seq} t=({t[0]:+.2f}, {t[1]:+.2f}, {t[2]:+.2f}){state}"
 
 
 class _LivePose:

@@ -29,10 +29,10 @@ class SessionStatusOut(SessionStatus):
     """Frames after a gap that were tracked again from other start poses (their first start looked wrong), and the
     session's second frame where tracking it again from turned starts changed its pose (``tracking.
     first_motion_max_deg``)."""
-    frames_limited: int = Field(0, ge=0)
-    """Tracked frames whose tracking state was ``limited`` (their cost jumped; not lost, still fused)."""
     frames_relocalised: int = Field(0, ge=0)
     """Of those, the frames placed from a keyframe's pose (a camera back at a place it mapped)."""
+    frames_limited: int = Field(0, ge=0)
+    """Tracked frames whose tracking state was ``limited`` (their cost jumped; not lost, still fused)."""
     worker_pid: int | None = None
     """Process id of the session's engine worker on the server (``None``: none, or engines on threads)."""
     worker_node: str | None = None

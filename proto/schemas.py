@@ -24,7 +24,7 @@ from enum import StrEnum
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from voxfusion.core.geometry import check_rigid, make_intrinsics, opengl_to_opencv
 
@@ -194,10 +194,28 @@ class PoseOut(_Model):
     tracker's reach (fast motion, dropped frames), or a view turning into space the map has not seen. The frame is
     still fused. ARKit's ``ARCamera.TrackingState`` has the same three; an AR app may hold its anchors while it is
     not ``normal``."""
-    cost_ratio: float | None = None
+    cost_ratio: float | None = Field(None, ge=0)
     """The frame's tracking cost over the median cost of the tracked frames before it (about 1 while tracking goes
     well); None for the first frames, frames not tracked and lost ones."""
     is_keyframe: bool = False
+
+    @model_validator(mode="before")
+    @classmethod
+    def _state_agrees_with_lost(cls, v: Any) -> Any:
+        """Poses saved before ``tracking_state`` existed (a finished session's ``poses.json``) have only ``lost``:
+        the state follows it. Sent together, the two must agree."""
+        if not isinstance(v, dict) or "lost" not in v:
+            return v
+        lost = v["lost"]
+        if not isinstance(lost, bool):
+            return v  # the field's own validation names it
+        state = v.get("tracking_state")
+        if state is None:
+            return {**v, "tracking_state": "lost" if lost else "normal"}
+        if (state == "lost") != lost:
+            raise ValueError(f"tracking_state {state!r} contradicts lost={lost} (a lost frame's state is 'lost', "
+                             "and only a lost frame's)")
+        return v
 
     @field_validator("T_world_cam", mode="before")
     @classmethod

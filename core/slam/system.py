@@ -72,7 +72,8 @@ COST_RATIO_MIN_HISTORY = 3
 
 def cost_ratio(cost: float, recent_costs: Sequence[float]) -> float | None:
     """``cost`` over the median of ``recent_costs`` (the tracked frames before it, at most ``tracking.retry_window``);
-    None with fewer than :data:`COST_RATIO_MIN_HISTORY` of them or a median that is not positive."""
+    None with fewer than :data:`COST_RATIO_MIN_HISTORY` of them, a median that is not positive or a cost that is not
+    finite."""
     if len(recent_costs) < COST_RATIO_MIN_HISTORY:
         return None
     median = float(np.median(recent_costs))

@@ -325,7 +325,10 @@ class TrackingConfig:
     ``retry_window``, at least three) has the tracking state ``limited`` (:attr:`.system.FrameRecord.tracking_state`:
     on every pose the server returns, counted in a session's status): its pose may be wrong. It is still fused,
     since a view turning into space the map has not seen costs more too. 0: never limited. Decides nothing in the
-    engine: a signal for clients (an AR app can hold its anchors while the state is limited)."""
+    engine: a signal for clients (an AR app can hold its anchors while the state is limited). The first frames
+    after the map's first are compared with frames that had fewer older references (``sdf_frame_refs``) and so
+    fewer terms: frame 4, the first with all of them, is where every dev capture had its largest ratio at its own
+    rate (at most 2.22), later frames stay under ~1.9."""
     refine_iters: int = 0
     """``sdf`` method: iterations of the render tracker run after it (0: none), with the small steps of
     ``lr_device_prior`` (it starts at the ``sdf`` tracker's pose, a few millimetres from the answer)."""
@@ -342,6 +345,9 @@ class TrackingConfig:
                 and self.retry_reach_m >= 0):
             raise ConfigError("retry_gap", "need retry_gap > 1, retry_step_deg > 0, retry_max_deg >= 0, "
                               "retry_step_m > 0 and retry_reach_m >= 0")
+        if self.limited_cost_factor > 0 and self.retry_window < 3:
+            raise ConfigError("retry_window", f"the tracking state's cost ratio needs a window of at least 3 frames "
+                              f"(or limited_cost_factor=0), got {self.retry_window}")
         for name in ("rays", "iters", "patience", "check_every", "sdf_points", "sdf_levels", "sdf_iters",
                      "retry_window", "retry_tracks"):
             if getattr(self, name) < 1:

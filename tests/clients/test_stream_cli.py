@@ -7,6 +7,7 @@ import re
 import stat
 import time
 
+import httpx
 import pytest
 from clientutil import TINY, LiveServer
 from typer.testing import CliRunner
@@ -224,3 +225,30 @@ def test_a_cuda_servers_preset_is_the_kind_alone(monkeypatch):
     on_cpu = session_preset(cap, "cpu", None)
     assert on_cpu.name == "synthetic+cpu" and "the server has no CUDA device: CPU sizes" in on_cpu.reason
     assert "requested" not in on_cpu.reason  # nobody asked for the CPU: the server has no GPU
+
+
+def test_a_frame_beyond_the_trackers_reach_is_limited_on_the_wire(server, shared_data, tmp_path):
+    """Real 7-Scenes frames at every 16th (1.9 Hz) through a real server and its worker, with the preset `voxfusion
+    run` picks (no tiny sizes: the case measured in tests/core/test_tracking_state.py): frame 4 ends ~14 cm off
+    without being lost, and the poses over HTTP, the session status and `/metrics` (open sessions: the session is
+    left open) say ``limited``."""
+    out = tmp_path / "limited"
+    result = CliRunner().invoke(app, ["stream", str(shared_data / "sevenscenes_redkitchen"), "--stride", "16",
+                                      "--max-frames", "6", "--server", server.url, "--out", str(out), "--no-finish"])
+    assert result.exit_code == 0, result.output + repr(result.exception)
+    info = json.loads((out / "session.json").read_text())
+    deadline = time.monotonic() + 180
+    while server.manager.status(info["id"]).frames_tracked < 6 and time.monotonic() < deadline:
+        time.sleep(0.2)
+    status = server.manager.status(info["id"])
+    assert status.frames_tracked == 6 and status.frames_limited >= 1 and status.frames_lost == 0, status
+    auth = {"Authorization": f"Bearer {info['token']}"}
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        poses = http.get(f"/sessions/{info['id']}/poses", headers=auth).raise_for_status().json()["poses"]
+        metrics = http.get("/metrics").raise_for_status().text
+        http.post(f"/sessions/{info['id']}/finish", headers=auth).raise_for_status()
+    states = [p["tracking_state"] for p in poses]
+    assert states[4] == "limited" and states[:4] == ["normal"] * 4 and poses[4]["cost_ratio"] > 3, poses
+    line = next(x for x in metrics.splitlines()
+                if x.startswith("voxfusion_session_frames_limited_total{") and info["id"] in x)
+    assert float(line.rsplit(" ", 1)[1]) == status.frames_limited

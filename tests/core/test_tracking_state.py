@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from voxfusion.clients.stream import format_pose
 from voxfusion.core.datasets import open_capture
 from voxfusion.core.errors import ConfigError
 from voxfusion.core.slam import SlamSystem
@@ -31,8 +32,22 @@ def test_tracking_state_of_a_record_and_on_the_wire():
     assert pose_out(FrameRecord(3, 0.3, eye, cost_ratio=float("inf"))).cost_ratio is None
     with pytest.raises(ValueError, match="tracking_state"):
         PoseOut(seq=0, timestamp_s=0.0, T_world_cam=eye.tolist(), tracking_state="degraded")
+    with pytest.raises(ValueError, match="contradicts"):
+        PoseOut(seq=0, timestamp_s=0.0, T_world_cam=eye.tolist(), lost=True, tracking_state="limited")
+    with pytest.raises(ValueError, match="cost_ratio"):
+        PoseOut(seq=0, timestamp_s=0.0, T_world_cam=eye.tolist(), cost_ratio=-1.0)
+    # a pose saved before the state existed (a finished session's poses.json) has only `lost`: the state follows it
+    old = {"seq": 5, "timestamp_s": 0.5, "T_world_cam": eye.tolist(), "tracking_loss": None, "lost": True,
+           "is_keyframe": False}
+    assert PoseOut.model_validate(old).tracking_state == "lost"
+    assert PoseOut.model_validate({**old, "lost": False}).tracking_state == "normal"
+    assert format_pose(out).endswith(" LIMITED") and format_pose(PoseOut.model_validate(old)).endswith(" LOST")
+    assert not format_pose(pose_out(FrameRecord(0, 0.0, eye))).endswith(("LOST", "LIMITED"))
     with pytest.raises(ConfigError, match="limited_cost_factor"):
         TrackingConfig(limited_cost_factor=-1.0)
+    with pytest.raises(ConfigError, match="retry_window"):
+        TrackingConfig(retry_window=2)
+    TrackingConfig(retry_window=2, limited_cost_factor=0.0)  # no ratio needed
 
 
 def _run(shared_data, stride: int, frames: int, *overrides: str) -> SlamSystem:
@@ -46,7 +61,7 @@ def _run(shared_data, stride: int, frames: int, *overrides: str) -> SlamSystem:
 def test_frames_beyond_the_trackers_reach_are_limited_on_real_7scenes(shared_data):
     """7-Scenes redkitchen at every 16th frame (1.9 Hz): frame 4 (capture frame 64) starts 8.7 cm / 3.4 deg from
     the true pose and the solver settles 14 cm off without the frame being lost; its cost jumps to ~4.8 times the
-    frames before it (measured: 4.76, seed 0), where no frame of any dev capture at its own rate went over 2.2
+    frames before it (measured: 4.76, seed 0), where no frame of any dev capture at its own rate went over 2.22
     (the synthetic room, fast rotation, TUM fr1 / fr3, 7-Scenes 0-499, both iPhone scans). So frame 4 is
     ``limited``; kept at its own rate, none of the same frames is."""
     slow = _run(shared_data, 16, 6)
