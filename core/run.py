@@ -253,7 +253,7 @@ def reference_world_axes(trajectory: Trajectory) -> WorldAxes:
 def write_trajectory_plot(path: Path, slam: SlamSystem, trajectory: Trajectory,
                           reference: Trajectory | None) -> Path | None:
     """``trajectory.png`` (:func:`.eval.trajectory_plot.plot_trajectory`): the estimate, aligned onto
-    ``reference`` as the ATE is (:data:`ATE_CONFIG`), lost frames marked. "Up" is the session's
+    ``reference`` as the ATE is (:data:`ATE_CONFIG`), lost and limited frames marked. "Up" is the session's
     (:meth:`SlamSystem.world_axes`: gravity in an ARKit world) when the estimate lives in the reference's
     world or there is no reference, else the reference cameras' (:func:`reference_world_axes`).
     ``None`` when there is no pose to draw."""
@@ -262,8 +262,10 @@ def write_trajectory_plot(path: Path, slam: SlamSystem, trajectory: Trajectory,
     axes = slam.world_axes()
     up = axes.up_m if reference is None or axes.world == "reference" else reference_world_axes(reference).up_m
     lost = np.array([r.lost for r in slam.records], dtype=bool)
-    return plot_trajectory(path, trajectory, up, reference, ATE_CONFIG,
-                           lost=lost if len(lost) == len(trajectory) else None)
+    limited = np.array([r.limited for r in slam.records], dtype=bool)
+    one_each = len(lost) == len(trajectory)
+    return plot_trajectory(path, trajectory, up, reference, ATE_CONFIG, lost=lost if one_each else None,
+                           limited=limited if one_each else None)
 
 
 def _frame_rows(slam: SlamSystem) -> list[dict]:

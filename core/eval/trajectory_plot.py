@@ -93,7 +93,8 @@ def _aligned_positions(estimate: Trajectory, ate: ATEResult) -> np.ndarray:
 
 def plot_trajectory(path: str | Path, estimate: Trajectory, up_m: Sequence[float] | np.ndarray,
                     reference: Trajectory | None = None, config: TrajectoryEvalConfig | None = None, *,
-                    lost: np.ndarray | None = None, title: str | None = None, dpi: int = 100) -> Path:
+                    lost: np.ndarray | None = None, limited: np.ndarray | None = None, title: str | None = None,
+                    dpi: int = 100) -> Path:
     """Write a PNG of ``estimate`` (and ``reference``): top view and height over time (module docstring).
 
     Args:
@@ -106,6 +107,7 @@ def plot_trajectory(path: str | Path, estimate: Trajectory, up_m: Sequence[float
             :class:`TrajectoryEvalConfig`). When the two cannot be associated (too few poses within
             ``config.max_diff_s``) the estimate is drawn alone and the title says why.
         lost: ``[N]`` bool, frames tracking reported lost (marked with red crosses), or ``None``.
+        limited: ``[N]`` bool, frames whose tracking state was ``limited`` (purple triangles), or ``None``.
         title: first title line (default: the file's folder name).
         dpi: pixels per inch (the figure is 11 x 4.6 inches: 1100 x 460 pixels at 100).
 
@@ -113,7 +115,8 @@ def plot_trajectory(path: str | Path, estimate: Trajectory, up_m: Sequence[float
         ``path``.
 
     Raises:
-        ValidationError: ``estimate`` has no pose; ShapeError: ``lost`` does not have one flag per pose.
+        ValidationError: ``estimate`` has no pose; ShapeError: ``lost`` or ``limited`` does not have one flag per
+            pose.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -121,10 +124,15 @@ def plot_trajectory(path: str | Path, estimate: Trajectory, up_m: Sequence[float
     path = Path(path)
     if len(estimate) == 0:
         raise ValidationError("estimate", "has no pose to plot")
-    if lost is not None:
-        lost = np.asarray(lost, dtype=bool).reshape(-1)
-        if lost.shape != (len(estimate),):
-            raise ShapeError("lost", lost.shape, f"[{len(estimate)}] (one flag per estimated pose)")
+    marks = []  # (flags [N], matplotlib format, colour, label)
+    for name, flags, fmt, colour in (("lost", lost, "x", "tab:red"), ("limited", limited, "^", "tab:purple")):
+        if flags is None:
+            continue
+        flags = np.asarray(flags, dtype=bool).reshape(-1)
+        if flags.shape != (len(estimate),):
+            raise ShapeError(name, flags.shape, f"[{len(estimate)}] (one flag per estimated pose)")
+        if flags.any():
+            marks.append((flags, fmt, colour, name))
     axes = plot_axes(up_m)
     a, b = axes.horizontal
     est_p = estimate.positions
@@ -155,10 +163,10 @@ def plot_trajectory(path: str | Path, estimate: Trajectory, up_m: Sequence[float
     top.plot(est_p[-1:, a], est_p[-1:, b], "s", color="tab:blue", ms=5, label="end")
     height.plot(estimate.timestamps_s - t0, axes.sign * est_p[:, axes.vertical], color="tab:blue", lw=1.4,
                 label="estimate")
-    if lost is not None and lost.any():
-        top.plot(est_p[lost, a], est_p[lost, b], "x", color="tab:red", ms=6, label="lost")
-        height.plot(estimate.timestamps_s[lost] - t0, axes.sign * est_p[lost, axes.vertical], "x",
-                    color="tab:red", ms=6, label="lost")
+    for flags, fmt, colour, label in marks:
+        top.plot(est_p[flags, a], est_p[flags, b], fmt, color=colour, ms=6, label=label)
+        height.plot(estimate.timestamps_s[flags] - t0, axes.sign * est_p[flags, axes.vertical], fmt,
+                    color=colour, ms=6, label=label)
     top.set_aspect("equal", adjustable="datalim")
     top.set_xlabel(axes.label(a))
     top.set_ylabel(axes.label(b))

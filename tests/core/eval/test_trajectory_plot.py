@@ -18,6 +18,7 @@ from voxfusion.core.trajectory import Trajectory
 
 BLUE = np.array([180, 119, 31])  # matplotlib's tab:blue (0x1f77b4) as OpenCV BGR
 ORANGE = np.array([14, 127, 255])  # the reference's tab:orange (0xff7f0e) as BGR
+PURPLE = np.array([189, 103, 148])  # the limited frames' tab:purple (0x9467bd) as BGR
 
 
 @pytest.mark.parametrize(("up", "horizontal", "vertical", "sign", "label"), [
@@ -91,11 +92,16 @@ def test_estimate_only(tmp_path):
     est = _moved(_loop(20))
     lost = np.zeros(20, dtype=bool)
     lost[[5, 6]] = True
-    path = plot_trajectory(tmp_path / "alone.png", est, (0.0, 1.0, 0.0), lost=lost)
+    limited = np.zeros(20, dtype=bool)
+    limited[[10, 11]] = True
+    path = plot_trajectory(tmp_path / "alone.png", est, (0.0, 1.0, 0.0), lost=lost, limited=limited)
     img = cv2.imread(str(path))
     assert img.shape == (460, 1100, 3) and path.stat().st_size > 20_000
     assert _pixels_near(img, BLUE) > 300 and _pixels_near(img, ORANGE) == 0  # no reference curve
     assert _pixels_near(img, np.array([40, 39, 214])) > 20  # tab:red crosses at the lost frames
+    assert _pixels_near(img, PURPLE) > 20  # tab:purple triangles at the limited ones
+    plain = cv2.imread(str(plot_trajectory(tmp_path / "plain.png", est, (0.0, 1.0, 0.0), lost=lost)))
+    assert _pixels_near(plain, PURPLE) == 0
 
 
 def test_reference_that_does_not_associate_is_left_out(tmp_path):
@@ -112,6 +118,9 @@ def test_bad_input_is_named(tmp_path):
     with pytest.raises(ShapeError) as err:
         plot_trajectory(tmp_path / "e.png", _loop(5), (0, 0, 1), lost=np.zeros(4, dtype=bool))
     assert err.value.field == "lost"
+    with pytest.raises(ShapeError) as err:
+        plot_trajectory(tmp_path / "e.png", _loop(5), (0, 0, 1), limited=np.zeros(6, dtype=bool))
+    assert err.value.field == "limited"
     assert not (tmp_path / "e.png").exists()
 
 
