@@ -56,7 +56,7 @@ from ..render.volume import RenderConfig, RenderedImage, render_depth_image
 from ..trajectory import Trajectory
 from .mapping import Keyframe, Mapper, MappingStep, keyframe_color_views, make_mapper, publish_keyframe_poses
 from .presets import VoxFusionConfig, resolve_device
-from .tracking import Tracker, TrackResult, device_prior_applies, predict_pose
+from .tracking import COST_RATIO_MIN_HISTORY, Tracker, TrackResult, device_prior_applies, predict_pose
 from .tracking_sdf import PRECOMPILED_LINEARIZE
 
 __all__ = ["FrameRecord", "TrackingState", "cost_ratio", "SlamStats", "MapSnapshot", "SlamSystem",
@@ -66,14 +66,12 @@ log = logging.getLogger("voxfusion.slam")
 
 TrackingState = Literal["normal", "limited", "lost"]
 """A frame's :attr:`FrameRecord.tracking_state` (ARKit's ``ARCamera.TrackingState`` has the same three)."""
-COST_RATIO_MIN_HISTORY = 3
-"""Tracked frames a frame's :func:`cost_ratio` needs before it (fewer: no ratio, never ``limited``)."""
 
 
 def cost_ratio(cost: float, recent_costs: Sequence[float]) -> float | None:
     """``cost`` over the median of ``recent_costs`` (the tracked frames before it, at most ``tracking.retry_window``);
-    None with fewer than :data:`COST_RATIO_MIN_HISTORY` of them, a median that is not positive or a cost that is not
-    finite."""
+    None with fewer than :data:`.tracking.COST_RATIO_MIN_HISTORY` of them, a median that is not positive or a cost
+    that is not finite."""
     if len(recent_costs) < COST_RATIO_MIN_HISTORY:
         return None
     median = float(np.median(recent_costs))

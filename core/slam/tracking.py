@@ -57,6 +57,10 @@ from .tracking_sdf import (
     with_older_frames,
 )
 
+COST_RATIO_MIN_HISTORY = 3
+"""Tracked frames a frame's cost ratio (:func:`.system.cost_ratio`, ``TrackingConfig.limited_cost_factor``) needs
+before it (fewer: no ratio, never ``limited``)."""
+
 FRAME_REFS_MIN_WEIGHT = 0.25
 """The older frame-to-frame references (``sdf_frame_refs``) are dropped once their weight would fall below this
 (after ``4 sdf_frame_refs_fade`` accepted frames, ~2 s at 30 Hz): by then the map has taken over, and three cost
@@ -345,8 +349,9 @@ class TrackingConfig:
                 and self.retry_reach_m >= 0):
             raise ConfigError("retry_gap", "need retry_gap > 1, retry_step_deg > 0, retry_max_deg >= 0, "
                               "retry_step_m > 0 and retry_reach_m >= 0")
-        if self.limited_cost_factor > 0 and self.retry_window < 3:
-            raise ConfigError("retry_window", f"the tracking state's cost ratio needs a window of at least 3 frames "
+        if self.limited_cost_factor > 0 and self.retry_window < COST_RATIO_MIN_HISTORY:
+            raise ConfigError("retry_window", "the tracking state's cost ratio needs a window of at least "
+                              f"{COST_RATIO_MIN_HISTORY} frames "
                               f"(or limited_cost_factor=0), got {self.retry_window}")
         for name in ("rays", "iters", "patience", "check_every", "sdf_points", "sdf_levels", "sdf_iters",
                      "retry_window", "retry_tracks"):

@@ -9,7 +9,7 @@ import time
 
 import httpx
 import pytest
-from clientutil import TINY, LiveServer
+from clientutil import TINY, LiveServer, wait_until
 from typer.testing import CliRunner
 
 from voxfusion.cli import app
@@ -237,9 +237,7 @@ def test_a_frame_beyond_the_trackers_reach_is_limited_on_the_wire(server, shared
                                       "--max-frames", "6", "--server", server.url, "--out", str(out), "--no-finish"])
     assert result.exit_code == 0, result.output + repr(result.exception)
     info = json.loads((out / "session.json").read_text())
-    deadline = time.monotonic() + 180
-    while server.manager.status(info["id"]).frames_tracked < 6 and time.monotonic() < deadline:
-        time.sleep(0.2)
+    wait_until(lambda: server.manager.status(info["id"]).frames_tracked >= 6, 180, "six frames tracked")
     status = server.manager.status(info["id"])
     assert status.frames_tracked == 6 and status.frames_limited >= 1 and status.frames_lost == 0, status
     auth = {"Authorization": f"Bearer {info['token']}"}

@@ -8,8 +8,8 @@ from voxfusion.core.datasets import open_capture
 from voxfusion.core.errors import ConfigError
 from voxfusion.core.slam import SlamSystem
 from voxfusion.core.slam.presets import preset_for
-from voxfusion.core.slam.system import COST_RATIO_MIN_HISTORY, FrameRecord, cost_ratio
-from voxfusion.core.slam.tracking import TrackingConfig
+from voxfusion.core.slam.system import FrameRecord, cost_ratio
+from voxfusion.core.slam.tracking import COST_RATIO_MIN_HISTORY, TrackingConfig
 from voxfusion.proto.schemas import PoseOut
 from voxfusion.server.outputs import pose_out
 
